@@ -1,0 +1,1 @@
+"""MJCF arms and task scenes, shipped inside the package as ``modnet.domains``."""

@@ -1,0 +1,221 @@
+"""The batched TorchRL environment: B copies of one compiled world, stepped with raw ``mujoco``.
+
+This is the hot path of guided policy search (thousands of short fixed-horizon rollouts
+from fixed initial conditions), so the step loop holds nothing but ``mujoco`` calls on
+``B`` ``MjData`` copies of one ``MjModel``; observations are read in one go from each
+copy's ``sensordata`` and the reward is the world's torch cost, batched.
+"""
+
+from __future__ import annotations
+
+import atexit
+import weakref
+
+import mujoco
+import numpy as np
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import Bounded, Categorical, Composite, Unbounded
+from torchrl.envs import EnvBase
+
+from modnet.specs import PIXELS_SHAPE, TORQUE_LIMIT
+from modnet.worlds import CONDITION_SETS, World, get_world
+
+_OPEN_RENDERERS: weakref.WeakSet = weakref.WeakSet()
+
+
+def _close_open_renderers() -> None:
+    for renderer in list(_OPEN_RENDERERS):
+        renderer.close()
+
+
+def open_renderer(model: mujoco.MjModel, height: int, width: int) -> mujoco.Renderer:
+    """A ``mujoco.Renderer`` that is closed at exit before mujoco tears its EGL display down."""
+    renderer = mujoco.Renderer(model, height, width)
+    if not _OPEN_RENDERERS:
+        # registered after mujoco's own exit hook, so it runs first (atexit is last-in first-out)
+        atexit.unregister(_close_open_renderers)
+        atexit.register(_close_open_renderers)
+    _OPEN_RENDERERS.add(renderer)
+    return renderer
+
+
+class WorldEnv(EnvBase):
+    """``num_envs`` copies of the world ``robot``/``task``, each reset to an initial condition.
+
+    Copy ``i`` starts from condition ``i % num_conditions`` of the chosen set unless the
+    reset tensordict carries a ``"condition"`` entry.  An episode lasts the task's horizon
+    ``T`` (or ``horizon``) control steps, then ``truncated`` and ``done`` are set.
+
+    Keys: ``("robot", "state")`` joint angles and velocities; ``("task", "state")``
+    end-effector and object/target/goal positions (and velocities); ``("task", "pixels")``
+    uint8 ``64x80x3`` from the top camera when ``pixels=True``; ``"condition"``;
+    ``"step_count"``; ``"action"`` (torques, clipped to +-2); ``"reward"`` = -cost of the
+    reached state and the action.
+
+    Examples:
+        >>> env = WorldEnv("four_link", "reach_black", num_envs=8)
+        >>> td = env.rollout(50)
+        >>> td["next", "robot", "state"].shape, td["next", "task", "state"].shape
+        (torch.Size([8, 50, 8]), torch.Size([8, 50, 12]))
+        >>> bool(td["next", "done"][:, -1].all())
+        True
+    """
+
+    def __init__(
+        self,
+        robot: str,
+        task: str,
+        num_envs: int = 1,
+        pixels: bool = False,
+        conditions: str = "train",
+        seed: int = 0,
+        num_conditions: int | None = None,
+        shaping: bool = True,
+        horizon: int | None = None,
+    ):
+        if isinstance(num_envs, bool) or not isinstance(num_envs, int) or num_envs < 1:
+            raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
+        if horizon is not None and horizon < 1:
+            raise ValueError(f"horizon must be at least 1, got {horizon}")
+        if conditions not in CONDITION_SETS:
+            raise ValueError(f"unknown condition set {conditions!r}; valid sets: {', '.join(CONDITION_SETS)}")
+        self.world: World = get_world(robot, task)
+        self.condition_params = self.world.conditions(conditions, seed, num_conditions)
+        self.horizon = horizon or self.world.task.horizon
+        self.shaping = shaping
+        self.pixels = pixels
+        super().__init__(batch_size=torch.Size([num_envs]), device="cpu")
+
+        model = self.world.model
+        self._datas = [mujoco.MjData(model) for _ in range(num_envs)]
+        self._sensordata = np.zeros((num_envs, model.nsensordata))
+        self._condition = np.arange(num_envs) % len(self.condition_params)
+        self._step_count = np.zeros(num_envs, dtype=np.int64)
+        self._renderer = open_renderer(model, *PIXELS_SHAPE[:2]) if pixels else None
+        self._frames = np.zeros((num_envs, *PIXELS_SHAPE), dtype=np.uint8) if pixels else None
+        self._camera = "top"
+        self._make_specs()
+
+    # --- specs ---------------------------------------------------------------------------
+    def _make_specs(self) -> None:
+        B = self.batch_size
+        robot, task = self.world.robot, self.world.task
+        task_spec = Composite(state=Unbounded((*B, task.state_dim)), shape=B)
+        if self.pixels:
+            task_spec["pixels"] = Bounded(0, 255, (*B, *PIXELS_SHAPE), dtype=torch.uint8)
+        self.observation_spec = Composite(
+            robot=Composite(state=Unbounded((*B, robot.state_dim)), shape=B),
+            task=task_spec,
+            condition=Bounded(0, len(self.condition_params) - 1, B, dtype=torch.int64),
+            step_count=Bounded(0, self.horizon, (*B, 1), dtype=torch.int64),
+            shape=B,
+        )
+        self.action_spec = Bounded(-TORQUE_LIMIT, TORQUE_LIMIT, (*B, robot.action_dim))
+        self.reward_spec = Unbounded((*B, 1))
+        self.done_spec = Composite(
+            done=Categorical(2, (*B, 1), dtype=torch.bool),
+            terminated=Categorical(2, (*B, 1), dtype=torch.bool),
+            truncated=Categorical(2, (*B, 1), dtype=torch.bool),
+            shape=B,
+        )
+
+    # --- the hot path -----------------------------------------------------------------------
+    def _observation(self) -> TensorDict:
+        robot_state, task_state = self.world.observe(self._sensordata)
+        task = {"state": torch.as_tensor(task_state, dtype=torch.float32)}
+        if self.pixels:
+            task["pixels"] = torch.from_numpy(self._frames.copy())
+        return TensorDict(
+            {
+                "robot": {"state": torch.as_tensor(robot_state, dtype=torch.float32)},
+                "task": task,
+                "condition": torch.from_numpy(self._condition.copy()),
+                "step_count": torch.from_numpy(self._step_count[:, None].copy()),
+            },
+            batch_size=self.batch_size,
+        )
+
+    def _read(self, i: int, data: mujoco.MjData) -> None:
+        self._sensordata[i] = data.sensordata
+        if self._renderer is not None:
+            self._renderer.update_scene(data, camera=self._camera)
+            self._renderer.render(out=self._frames[i])
+
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
+        mask = np.ones(self.batch_size[0], dtype=bool)
+        if tensordict is not None:
+            if "_reset" in tensordict.keys():
+                mask = tensordict["_reset"].reshape(-1).numpy()
+            if "condition" in tensordict.keys():
+                chosen = tensordict["condition"].reshape(-1).numpy()
+                if chosen.min() < 0 or chosen.max() >= len(self.condition_params):
+                    raise ValueError(f"condition out of range: valid are 0..{len(self.condition_params) - 1}")
+                self._condition[mask] = chosen[mask]
+        for i in np.flatnonzero(mask):
+            data = self._datas[i]
+            self.world.reset_data(data, self.condition_params[self._condition[i]])
+            self._read(i, data)
+        self._step_count[mask] = 0
+        out = self._observation()
+        out.update(self.full_done_spec.zero())
+        return out
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        action = tensordict["action"]
+        if action.shape != self.action_spec.shape:
+            raise ValueError(
+                f"action of shape {tuple(action.shape)} for {self.world.name}: "
+                f"expected {tuple(self.action_spec.shape)} (num_envs, action_dim)"
+            )
+        action = action.clamp(-TORQUE_LIMIT, TORQUE_LIMIT)
+        controls = action.detach().numpy().astype(np.float64)
+        for i, data in enumerate(self._datas):
+            data.ctrl[:] = controls[i]
+            self.world.step_data(data)
+            self._read(i, data)
+        self._step_count += 1
+        out = self._observation()
+        cost = self.world.cost(out["robot", "state"], out["task", "state"], action, self.shaping)
+        truncated = torch.from_numpy(self._step_count >= self.horizon)[:, None]
+        out["reward"] = -cost.to(torch.float32)[:, None]
+        out["done"] = truncated.clone()
+        out["truncated"] = truncated
+        out["terminated"] = torch.zeros_like(truncated)
+        return out
+
+    def _set_seed(self, seed: int | None) -> None:
+        # The dynamics are deterministic; the seed only chose the condition sets.
+        return None
+
+    # --- for evaluation and pictures --------------------------------------------------------------
+    def render_frames(self, height: int = PIXELS_SHAPE[0], width: int = PIXELS_SHAPE[1]) -> np.ndarray:
+        """RGB frames ``[B, height, width, 3]`` of every copy from the top camera."""
+        renderer = open_renderer(self.world.model, height, width)
+        frames = []
+        for data in self._datas:
+            renderer.update_scene(data, camera=self._camera)
+            frames.append(renderer.render())
+        renderer.close()
+        return np.stack(frames)
+
+
+def make_env(
+    robot: str,
+    task: str,
+    num_envs: int = 1,
+    pixels: bool = False,
+    conditions: str = "train",
+    seed: int = 0,
+    num_conditions: int | None = None,
+    shaping: bool = True,
+    horizon: int | None = None,
+) -> WorldEnv:
+    """The batched TorchRL environment of ``robot`` doing ``task``; see :class:`WorldEnv`.
+
+    Examples:
+        >>> env = make_env("three_link", "reach_red", num_envs=4, conditions="test")
+        >>> env.rollout(5)["next", "reward"].shape
+        torch.Size([4, 5, 1])
+    """
+    return WorldEnv(robot, task, num_envs, pixels, conditions, seed, num_conditions, shaping, horizon)
