@@ -13,10 +13,23 @@ Examples:
 """
 
 import os
+import sys
 
-# Render without a display unless the user chose a backend (Mesa's EGL works on CPUs).
-# Set before anything imports mujoco.
-os.environ.setdefault("MUJOCO_GL", "egl")
+
+def _default_to_egl() -> None:
+    """Render without a display (Mesa's EGL works on CPUs) unless the user chose a backend."""
+    if "MUJOCO_GL" in os.environ:
+        return
+    os.environ["MUJOCO_GL"] = "egl"
+    if "mujoco" in sys.modules and sys.platform.startswith("linux"):
+        # mujoco was imported (torchrl does) before the default could be read: switch now
+        from mujoco.egl import GLContext
+        from mujoco.rendering.classic import gl_context
+
+        gl_context.GLContext = GLContext
+
+
+_default_to_egl()
 
 __version__ = "0.1.0"
 
