@@ -9,7 +9,9 @@ copy's ``sensordata`` and the reward is the world's torch cost, batched.
 from __future__ import annotations
 
 import atexit
+import os
 import weakref
+from concurrent.futures import ThreadPoolExecutor
 
 import mujoco
 import numpy as np
@@ -53,6 +55,9 @@ class WorldEnv(EnvBase):
     ``"step_count"``; ``"action"`` (torques, clipped to +-2); ``"reward"`` = -cost of the
     reached state and the action.
 
+    The copies are stepped on ``num_threads`` threads (default: up to 2, one per 8 copies);
+    results do not depend on the number of threads.
+
     Examples:
         >>> env = WorldEnv("four_link", "reach_black", num_envs=8)
         >>> td = env.rollout(50)
@@ -73,6 +78,7 @@ class WorldEnv(EnvBase):
         num_conditions: int | None = None,
         shaping: bool = True,
         horizon: int | None = None,
+        num_threads: int | None = None,
     ):
         if isinstance(num_envs, bool) or not isinstance(num_envs, int) or num_envs < 1:
             raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
@@ -95,6 +101,12 @@ class WorldEnv(EnvBase):
         self._renderer = open_renderer(model, *PIXELS_SHAPE[:2]) if pixels else None
         self._frames = np.zeros((num_envs, *PIXELS_SHAPE), dtype=np.uint8) if pixels else None
         self._camera = "top"
+        # mujoco releases the GIL while stepping: split the copies over a few threads
+        threads = num_threads or min(2, os.cpu_count() or 1, max(1, num_envs // 8))
+        self._chunks = np.array_split(np.arange(num_envs), threads)
+        self._pool = ThreadPoolExecutor(threads, "modnet-physics") if threads > 1 else None
+        if self._pool is not None:
+            weakref.finalize(self, self._pool.shutdown)
         self._make_specs()
 
     # --- specs ---------------------------------------------------------------------------
@@ -136,11 +148,18 @@ class WorldEnv(EnvBase):
             batch_size=self.batch_size,
         )
 
-    def _read(self, i: int, data: mujoco.MjData) -> None:
-        self._sensordata[i] = data.sensordata
-        if self._renderer is not None:
-            self._renderer.update_scene(data, camera=self._camera)
-            self._renderer.render(out=self._frames[i])
+    def _render(self, indices) -> None:
+        if self._renderer is not None:  # GL work stays on this thread
+            for i in indices:
+                self._renderer.update_scene(self._datas[i], camera=self._camera)
+                self._renderer.render(out=self._frames[i])
+
+    def _advance(self, indices: np.ndarray, controls: np.ndarray) -> None:
+        for i in indices:
+            data = self._datas[i]
+            data.ctrl[:] = controls[i]
+            self.world.step_data(data)
+            self._sensordata[i] = data.sensordata
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
         mask = np.ones(self.batch_size[0], dtype=bool)
@@ -152,10 +171,12 @@ class WorldEnv(EnvBase):
                 if chosen.min() < 0 or chosen.max() >= len(self.condition_params):
                     raise ValueError(f"condition out of range: valid are 0..{len(self.condition_params) - 1}")
                 self._condition[mask] = chosen[mask]
-        for i in np.flatnonzero(mask):
+        reset = np.flatnonzero(mask)
+        for i in reset:
             data = self._datas[i]
             self.world.reset_data(data, self.condition_params[self._condition[i]])
-            self._read(i, data)
+            self._sensordata[i] = data.sensordata
+        self._render(reset)
         self._step_count[mask] = 0
         out = self._observation()
         out.update(self.full_done_spec.zero())
@@ -170,10 +191,12 @@ class WorldEnv(EnvBase):
             )
         action = action.clamp(-TORQUE_LIMIT, TORQUE_LIMIT)
         controls = action.detach().numpy().astype(np.float64)
-        for i, data in enumerate(self._datas):
-            data.ctrl[:] = controls[i]
-            self.world.step_data(data)
-            self._read(i, data)
+        if self._pool is None:
+            self._advance(self._chunks[0], controls)
+        else:
+            for future in [self._pool.submit(self._advance, c, controls) for c in self._chunks]:
+                future.result()
+        self._render(range(len(self._datas)))
         self._step_count += 1
         out = self._observation()
         cost = self.world.cost(out["robot", "state"], out["task", "state"], action, self.shaping)
@@ -210,6 +233,7 @@ def make_env(
     num_conditions: int | None = None,
     shaping: bool = True,
     horizon: int | None = None,
+    num_threads: int | None = None,
 ) -> WorldEnv:
     """The batched TorchRL environment of ``robot`` doing ``task``; see :class:`WorldEnv`.
 
@@ -218,4 +242,6 @@ def make_env(
         >>> env.rollout(5)["next", "reward"].shape
         torch.Size([4, 5, 1])
     """
-    return WorldEnv(robot, task, num_envs, pixels, conditions, seed, num_conditions, shaping, horizon)
+    return WorldEnv(
+        robot, task, num_envs, pixels, conditions, seed, num_conditions, shaping, horizon, num_threads
+    )
