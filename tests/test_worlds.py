@@ -74,8 +74,9 @@ def test_bad_condition_requests():
     world = get_world("three_link", "reach")
     with pytest.raises(ValueError, match="unknown condition set 'val'; valid sets: train, test, random"):
         world.conditions("val")
-    with pytest.raises(ValueError, match="the 'train' set has 4 conditions"):
-        world.conditions("train", n=7)
+    with pytest.raises(ValueError, match="the 'train' set has at least 4 conditions, not 2"):
+        world.conditions("train", n=2)
+    np.testing.assert_array_equal(world.conditions("train", n=9)[:4], world.conditions("train"))
 
 
 @pytest.mark.parametrize("task", modnet.TASKS)
@@ -96,7 +97,6 @@ def test_cost_falls_towards_the_goal_and_is_smallest_there(task):
         costs.append(float(spec.cost(moved)))
         assert float(spec.distance(moved)) == pytest.approx(float(s), abs=1e-6)
     assert all(a > b for a, b in zip(costs, costs[1:], strict=False))
-    assert costs[-1] == pytest.approx(0.0, abs=1e-9) if not spec.l1 else True
 
 
 @pytest.mark.parametrize("task", ["push", "drawer_horizontal"])

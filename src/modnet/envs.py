@@ -9,6 +9,7 @@ copy's ``sensordata`` and the reward is the world's torch cost, batched.
 from __future__ import annotations
 
 import atexit
+import gc
 import os
 import weakref
 from concurrent.futures import ThreadPoolExecutor
@@ -32,7 +33,13 @@ def _close_open_renderers() -> None:
 
 
 def open_renderer(model: mujoco.MjModel, height: int, width: int) -> mujoco.Renderer:
-    """A ``mujoco.Renderer`` that is closed at exit before mujoco tears its EGL display down."""
+    """A ``mujoco.Renderer`` that is closed at exit before mujoco tears its EGL display down.
+
+    Unreachable renderers are collected first: mujoco's EGL context releases the thread's
+    current context when freed, and a collection that ran in the middle of building the
+    new renderer would leave it drawing black frames.
+    """
+    gc.collect()
     renderer = mujoco.Renderer(model, height, width)
     if not _OPEN_RENDERERS:
         # registered after mujoco's own exit hook, so it runs first (atexit is last-in first-out)

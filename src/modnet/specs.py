@@ -124,9 +124,10 @@ class TaskDefinition:
     goal: str  # the observable where ``moved`` must end up
     horizon: int
     success_distance: float
-    distance_weight: float = 1.0
-    shaping_weight: float = 0.0  # 0: the task has no shaping term
-    l1: float = 0.0  # weight of the log term of the distance cost
+    # distance cost 0.5 l2 |d|^2 + 0.5 l1 log(alpha + |d|^2) (GPS's MuJoCo examples' weights)
+    l2: float = 10.0
+    l1: float = 0.1
+    shaping_weight: float = 0.0  # 0: the task has no shaping term (relative to l2)
     workspace: tuple[float, float, float, float] = field(default=(-0.9, 0.9, 0.3, 1.0))
 
     @property
@@ -178,9 +179,9 @@ class TaskDefinition:
 
     def cost(self, task_state: torch.Tensor, shaping: bool = True) -> torch.Tensor:
         """The extrinsic cost term: distance cost to the goal, plus the shaping term if on."""
-        cost = self.distance_weight * distance_cost(self.target_offset(task_state), l1=self.l1)
+        cost = distance_cost(self.target_offset(task_state), self.l2, self.l1)
         if shaping and self.shaping_weight:
-            cost = cost + self.shaping_weight * distance_cost(self.shaping_offset(task_state))
+            cost = cost + self.shaping_weight * distance_cost(self.shaping_offset(task_state), self.l2, self.l1)
         return cost
 
     # --- helpers for subclasses ---------------------------------------------------------

@@ -122,14 +122,15 @@ class World:
     def conditions(self, split: str = "train", seed: int = 0, n: int | None = None) -> np.ndarray:
         """Initial conditions ``[n, n_joints + task.param_dim]``: arm angles, then the task's placements.
 
-        ``"train"`` and ``"test"`` hold 4 conditions each; ``"random"`` draws ``n`` more.  All
+        ``"train"`` and ``"test"`` hold 4 conditions each (a larger ``n`` extends a set; its
+        first 4 stay the same); ``"random"`` draws ``n`` (default 4) from a third stream.  All
         are deterministic per ``seed``; object placements do not depend on the robot, so
         condition ``i`` of a task is the same scene for every arm.
         """
         if split not in CONDITION_SETS:
             raise ValueError(f"unknown condition set {split!r}; valid sets: {', '.join(CONDITION_SETS)}")
-        if split != "random" and n is not None and n != NUM_FIXED_CONDITIONS:
-            raise ValueError(f"the {split!r} set has {NUM_FIXED_CONDITIONS} conditions, not {n}")
+        if split != "random" and n is not None and n < NUM_FIXED_CONDITIONS:
+            raise ValueError(f"the {split!r} set has at least {NUM_FIXED_CONDITIONS} conditions, not {n}")
         n = NUM_FIXED_CONDITIONS if n is None else n
         if n < 1:
             raise ValueError(f"need at least one condition, got n={n}")
