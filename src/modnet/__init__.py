@@ -33,6 +33,7 @@ _default_to_egl()
 
 __version__ = "0.1.0"
 
+from modnet.bank import BankConfig, BankError, ModuleBank  # noqa: E402
 from modnet.envs import WorldEnv, make_env  # noqa: E402
 from modnet.worlds import (  # noqa: E402
     ROBOTS,
@@ -45,6 +46,9 @@ from modnet.worlds import (  # noqa: E402
 )
 
 __all__ = [
+    "BankConfig",
+    "BankError",
+    "ModuleBank",
     "ROBOTS",
     "TASKS",
     "World",
