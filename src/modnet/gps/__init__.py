@@ -1,0 +1,65 @@
+"""Guided policy search: cost expansion, dynamics fitting, KL-constrained LQR, controllers."""
+
+from modnet.gps.controller import LinearGaussianController, LinearGaussianGains
+from modnet.gps.cost import CostDerivatives, QuadraticCost, cost_derivatives, expand_cost, time_weights
+from modnet.gps.dynamics import (
+    GMM,
+    DynamicsPriorConfig,
+    DynamicsPriorGMM,
+    LinearGaussianDynamics,
+    NIWPrior,
+    PolicyPriorGMM,
+    conditional_gaussian_fit,
+    estimate_initial_state,
+    fit_dynamics,
+    fit_policy_linearization,
+)
+from modnet.gps.errors import NumericalError, check_finite
+from modnet.gps.lqr import (
+    LQRConfig,
+    LQRResult,
+    StateActionMarginals,
+    adapt_step_mult,
+    augmented_cost,
+    expected_cost,
+    gaussian_cost_terms,
+    kl_divergence,
+    laplace_cost,
+    lqr_backward,
+    lqr_forward,
+    solve_kl_constrained_lqr,
+)
+
+__all__ = [
+    "GMM",
+    "CostDerivatives",
+    "DynamicsPriorConfig",
+    "DynamicsPriorGMM",
+    "LQRConfig",
+    "LQRResult",
+    "LinearGaussianController",
+    "LinearGaussianDynamics",
+    "LinearGaussianGains",
+    "NIWPrior",
+    "NumericalError",
+    "PolicyPriorGMM",
+    "QuadraticCost",
+    "StateActionMarginals",
+    "adapt_step_mult",
+    "augmented_cost",
+    "check_finite",
+    "conditional_gaussian_fit",
+    "cost_derivatives",
+    "estimate_initial_state",
+    "expand_cost",
+    "expected_cost",
+    "fit_dynamics",
+    "fit_policy_linearization",
+    "gaussian_cost_terms",
+    "kl_divergence",
+    "laplace_cost",
+    "lqr_backward",
+    "lqr_forward",
+    "solve_kl_constrained_lqr",
+    "time_weights",
+]
