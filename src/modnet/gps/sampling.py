@@ -1,0 +1,138 @@
+"""Sampling for GPS: N rollouts per condition of one world, through TorchRL, kept in TensorDict storage.
+
+A :class:`WorldSampler` owns one batched env with ``M * N`` copies (copy ``i`` starts from
+condition ``i % M``), rolls out any TorchRL policy for the horizon, and appends the
+trajectories to a :class:`~torchrl.data.ReplayBuffer` over a ``LazyTensorStorage`` (the
+dynamics prior reads the last few iterations from it).  :class:`Samples` holds one
+iteration's trajectories in the ``[M, N, T, ...]`` layout the GPS math uses.
+
+Examples:
+    >>> from modnet.gps.sampling import WorldSampler
+    >>> sampler = WorldSampler("three_link", "reach", samples_per_condition=2, horizon=5)
+    >>> samples = sampler.sample()          # random actions when no policy is given
+    >>> samples.X.shape, samples.U.shape    # [M, N, T, dX], [M, N, T, dU]
+    (torch.Size([4, 2, 5, 12]), torch.Size([4, 2, 5, 3]))
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from torchrl.data import LazyTensorStorage, ReplayBuffer
+
+from modnet.envs import make_env
+from modnet.specs import TORQUE_LIMIT
+
+STATE_KEYS = (("robot", "state"), ("task", "state"))  # x = [robot_state, task_state]
+
+
+@dataclass
+class Samples:
+    """One iteration's trajectories of one world, laid out ``[M, N, T, ...]``.
+
+    ``X`` are the states each action was taken in, ``U`` the actions as applied (clipped
+    to the torque limit), ``cost`` the per-step cost of the reached state; ``obs`` the
+    policy inputs (states, and pixels when the env renders) in the same layout.
+    """
+
+    X: torch.Tensor  # [M, N, T, dX] float64
+    U: torch.Tensor  # [M, N, T, dU] float64
+    cost: torch.Tensor  # [M, N, T] float64
+    obs: TensorDictBase  # [M, N, T]
+
+    @property
+    def num_samples(self) -> int:
+        return self.X.shape[0] * self.X.shape[1]
+
+
+def to_condition_major(td: TensorDictBase, num_conditions: int) -> TensorDictBase:
+    """``[M * N, T]`` rollouts with copy ``i`` on condition ``i % M`` -> ``[M, N, T]``."""
+    batch, horizon = td.shape
+    return td.reshape(batch // num_conditions, num_conditions, horizon).transpose(0, 1)
+
+
+def state_of(td: TensorDictBase) -> torch.Tensor:
+    """The full state ``x = [robot_state, task_state]`` (float64) of a tensordict."""
+    return torch.cat([td.get(key) for key in STATE_KEYS], -1).to(torch.float64)
+
+
+class WorldSampler:
+    """Rolls out policies in one world, ``samples_per_condition`` times per condition.
+
+    Args:
+        robot, task: the world.
+        conditions: the condition set ("train" for training, "test" for evaluation).
+        samples_per_condition: N.
+        horizon: T (the task's horizon when None).
+        pixels: render ``("task", "pixels")`` (only when a pixel policy needs them).
+        shaping: include the task's shaping term in the cost.
+        buffer_iterations: how many iterations of trajectories the replay buffer keeps.
+        seed: the condition sets' seed.
+    """
+
+    def __init__(
+        self,
+        robot: str,
+        task: str,
+        *,
+        conditions: str = "train",
+        samples_per_condition: int = 5,
+        horizon: int | None = None,
+        pixels: bool = False,
+        shaping: bool = True,
+        buffer_iterations: int = 4,
+        seed: int = 0,
+        num_conditions: int | None = None,
+    ) -> None:
+        if samples_per_condition < 1:
+            raise ValueError(f"samples_per_condition must be at least 1, got {samples_per_condition}")
+        probe = make_env(robot, task, conditions=conditions, seed=seed, num_conditions=num_conditions)
+        self.num_conditions = len(probe.condition_params)
+        self.samples_per_condition = samples_per_condition
+        self.env = make_env(
+            robot,
+            task,
+            num_envs=self.num_conditions * samples_per_condition,
+            pixels=pixels,
+            conditions=conditions,
+            seed=seed,
+            num_conditions=num_conditions,
+            shaping=shaping,
+            horizon=horizon,
+        )
+        self.world = self.env.world
+        self.horizon = self.env.horizon
+        self.shaping = shaping
+        self.buffer = ReplayBuffer(
+            storage=LazyTensorStorage(buffer_iterations * self.env.batch_size[0]), batch_size=1
+        )
+
+    @property
+    def name(self) -> str:
+        return self.world.name
+
+    def rollout(self, policy: TensorDictModuleBase | None = None) -> TensorDictBase:
+        """One ``[M * N, T]`` batch of trajectories, stored in the replay buffer."""
+        td = self.env.rollout(self.horizon, policy, break_when_any_done=False)
+        self.buffer.extend(td.exclude(("task", "pixels"), ("next", "task", "pixels")))
+        return td
+
+    def sample(self, policy: TensorDictModuleBase | None = None) -> Samples:
+        """Roll ``policy`` out (random actions when None) and return the iteration's samples."""
+        td = to_condition_major(self.rollout(policy), self.num_conditions)
+        U = td["action"].to(torch.float64).clamp(-TORQUE_LIMIT, TORQUE_LIMIT)
+        return Samples(
+            X=state_of(td),
+            U=U,
+            cost=-td["next", "reward"].squeeze(-1).to(torch.float64),
+            obs=td.select(*STATE_KEYS, ("task", "pixels"), "condition", "step_count", strict=False),
+        )
+
+    def buffered_states(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """States and applied actions of every stored trajectory, ``[S, T, dX]`` and ``[S, T, dU]``."""
+        stored = self.buffer.storage[: len(self.buffer)]
+        U = stored["action"].to(torch.float64).clamp(-TORQUE_LIMIT, TORQUE_LIMIT)
+        return state_of(stored), U

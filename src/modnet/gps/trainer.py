@@ -1,0 +1,454 @@
+"""Guided policy search over every training world of a universe, training one module bank.
+
+One :meth:`GPSTrainer.step` is one GPS iteration:
+
+1. **sample**: N rollouts per condition of every world from its linear-Gaussian controllers
+   (:class:`~modnet.gps.sampling.WorldSampler`, TorchRL env + replay-buffer storage);
+2. **cost**: quadratic expansion of each world's torch cost by autograd;
+3. **dynamics**: per-step linear-Gaussian fits with a GMM prior;
+4. **C-step**: KL-constrained LQR per world and condition, against the linearised policy
+   (MDGPS) or the previous controller plus BADMM's dual terms;
+5. **S-step**: SGD on the sum over worlds of the precision-weighted regression of each
+   world's composed policy onto its controllers (:class:`~modnet.gps.loss.PolicyRegressionLoss`),
+   then the policy's diagonal covariance is fitted.
+
+Examples:
+    >>> from modnet.bank import ModuleBank
+from modnet.envs import make_env
+    >>> from modnet.gps.trainer import GPSConfig, GPSTrainer
+    >>> worlds = [("three_link", "reach_red"), ("four_link", "reach_black")]
+    >>> bank = ModuleBank.build(["three_link", "four_link"], ["reach_red", "reach_black"])
+    >>> trainer = GPSTrainer(bank, worlds, GPSConfig(samples_per_condition=2, horizon=10, sgd_steps=5))
+    >>> diagnostics = trainer.step()
+    >>> sorted(diagnostics["three_link/reach_red"])[:3]
+    ['action_gap', 'distance', 'eta']
+"""
+
+from __future__ import annotations
+
+import time
+from collections import defaultdict
+from collections.abc import Sequence
+from dataclasses import dataclass, field, fields
+from typing import Literal
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import LazyTensorStorage, ReplayBuffer
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from modnet.bank import ModuleBank
+from modnet.envs import make_env
+from modnet.gps.badmm import BADMMConfig, Multipliers, badmm_cost, badmm_targets, dual_step
+from modnet.gps.controller import LinearGaussianController, LinearGaussianGains
+from modnet.gps.cost import QuadraticCost, Ramp, expand_cost, time_weights
+from modnet.gps.dynamics import (
+    DynamicsPriorConfig,
+    DynamicsPriorGMM,
+    LinearGaussianDynamics,
+    PolicyPriorGMM,
+    fit_dynamics,
+    fit_policy_linearization,
+)
+from modnet.gps.errors import NumericalError, check_finite
+from modnet.gps.loss import PolicyRegressionLoss
+from modnet.gps.lqr import LQRConfig, adapt_step_mult, kl_divergence, laplace_cost, lqr_forward
+from modnet.gps.lqr import solve_kl_constrained_lqr as c_step
+from modnet.gps.sampling import STATE_KEYS, Samples, WorldSampler, state_of
+
+PHASES = ("sampling", "cost", "dynamics", "lqr", "s_step")
+
+
+@dataclass
+class GPSConfig:
+    """Options of a GPS run (defaults: GPS code and the paper, sized for a 2-core laptop)."""
+
+    algo: Literal["mdgps", "badmm"] = "mdgps"
+    samples_per_condition: int = 5
+    horizon: int | None = None  # the task's horizon when None
+    conditions: str = "train"
+    num_conditions: int | None = None  # the training set's size (4 when None)
+    condition_seed: int = 0
+    shaping: bool = True
+    cost_ramp: Ramp = "constant"
+    final_cost_multiplier: float = 5.0
+    init_variance: float = 0.5
+    init_kp: float = 0.5
+    init_kd: float = 0.3
+    kl_step: float = 1.0
+    min_step_mult: float = 0.5
+    max_step_mult: float = 3.0
+    sgd_steps: int = 1000
+    initial_sgd_steps: int = 1000
+    batch_per_world: int = 25
+    lr: float = 1e-3
+    weight_decay: float = 1e-5
+    ent_reg: float = 0.0
+    dynamics_prior: DynamicsPriorConfig = field(
+        default_factory=lambda: DynamicsPriorConfig(max_clusters=20, min_samples_per_cluster=40)
+    )
+    badmm: BADMMConfig = field(default_factory=BADMMConfig)
+    seed: int = 0
+
+    def lqr(self) -> LQRConfig:
+        return LQRConfig(kl_step=self.kl_step, min_mult=self.min_step_mult, max_mult=self.max_step_mult)
+
+
+@dataclass
+class Linearised:
+    """What a C-step needs of one iteration: its controller, fitted dynamics and cost."""
+
+    gains: LinearGaussianGains
+    dynamics: LinearGaussianDynamics
+    cost: QuadraticCost
+
+
+@dataclass
+class WorldState:
+    """Everything GPS keeps about one world between iterations."""
+
+    name: str
+    sampler: WorldSampler
+    controller: LinearGaussianController
+    dynamics_prior: DynamicsPriorGMM
+    policy_prior: PolicyPriorGMM
+    eta: torch.Tensor  # [M]
+    step_mult: torch.Tensor  # [M]
+    duals: Multipliers | None = None
+    samples: Samples | None = None
+    current: Linearised | None = None  # this iteration's sampling controller, dynamics, cost
+    previous: Linearised | None = None
+    policy: LinearGaussianGains | None = None  # the policy linearised around the samples
+    policy_mean: torch.Tensor | None = None  # [M, N, T, dU]
+    diagnostics: dict[str, float] = field(default_factory=dict)
+
+
+def world_key(robot: str, task: str) -> str:
+    return f"{robot}/{task}"
+
+
+def frozen(gains: LinearGaussianGains) -> LinearGaussianGains:
+    """A copy that later in-place updates of a controller's buffers cannot change."""
+    return LinearGaussianGains(*(t.detach().clone() for t in astuple_shallow(gains)))
+
+
+def astuple_shallow(obj) -> tuple:
+    return tuple(getattr(obj, f.name) for f in fields(obj))
+
+
+class GPSTrainer:
+    """Trains ``bank`` on ``worlds`` (``(robot, task)`` pairs) by guided policy search.
+
+    Args:
+        bank: the module bank; every world's modules must be in it.
+        worlds: the training worlds.
+        config: the run's options.
+        pixels: whether the policy reads ``("task", "pixels")`` (then the samples render).
+    """
+
+    def __init__(
+        self,
+        bank: ModuleBank,
+        worlds: Sequence[tuple[str, str]],
+        config: GPSConfig | None = None,
+        *,
+        pixels: bool = False,
+    ) -> None:
+        self.config = config = config or GPSConfig()
+        if config.algo not in ("mdgps", "badmm"):
+            raise ValueError(f"unknown GPS algorithm {config.algo!r}; valid: mdgps, badmm")
+        if not worlds:
+            raise ValueError("GPS needs at least one training world")
+        for world in worlds:
+            bank.parts(bank.world(*world))  # fails early, naming what is missing
+        torch.manual_seed(config.seed)
+        self.bank = bank
+        self.pixels = pixels
+        self.iteration = 0
+        self.timings: dict[str, float] = defaultdict(float)
+        self.states = {world_key(*w): self._init_world(*w) for w in worlds}
+        self.loss = PolicyRegressionLoss(bank)
+        self.optimizer = torch.optim.Adam(bank.parameters(), lr=config.lr, weight_decay=config.weight_decay)
+        self.history: list[dict[str, dict[str, float]]] = []
+
+    # --- set-up -------------------------------------------------------------------------
+    def _init_world(self, robot: str, task: str) -> WorldState:
+        c = self.config
+        sampler = WorldSampler(
+            robot,
+            task,
+            conditions=c.conditions,
+            samples_per_condition=c.samples_per_condition,
+            horizon=c.horizon,
+            pixels=self.pixels,
+            shaping=c.shaping,
+            seed=c.condition_seed,
+            num_conditions=c.num_conditions,
+        )
+        M, T = sampler.num_conditions, sampler.horizon
+        initial = sampler.env.reset()[:M]  # copies 0..M-1 start from conditions 0..M-1
+        n = sampler.world.robot.n_joints
+        controller = LinearGaussianController.initial(
+            list(STATE_KEYS),
+            num_conditions=M,
+            horizon=T,
+            state_dim=sampler.world.state_dim,
+            joint_position_idx=range(n),
+            joint_velocity_idx=range(n, 2 * n),
+            hold_state=state_of(initial),
+            kp=c.init_kp,
+            kd=c.init_kd,
+            variance=c.init_variance,
+            action_dtype=torch.float32,
+        )
+        duals = None
+        if c.algo == "badmm":
+            duals = Multipliers.zeros(
+                M, T, sampler.world.state_dim, n, c.badmm.initial_policy_weight
+            )
+        generator = torch.Generator().manual_seed(c.seed)
+        return WorldState(
+            name=sampler.name,
+            sampler=sampler,
+            controller=controller,
+            dynamics_prior=DynamicsPriorGMM(c.dynamics_prior, generator),
+            policy_prior=PolicyPriorGMM(c.dynamics_prior, generator),
+            eta=torch.ones(M, dtype=torch.float64),
+            step_mult=torch.ones(M, dtype=torch.float64),
+            duals=duals,
+        )
+
+    def _timed(self, phase: str):
+        trainer = self
+
+        class _Timer:
+            def __enter__(self):
+                self.start = time.perf_counter()
+
+            def __exit__(self, *exc):
+                trainer.timings[phase] += time.perf_counter() - self.start
+
+        return _Timer()
+
+    # --- one iteration ------------------------------------------------------------------------
+    def step(self) -> dict[str, dict[str, float]]:
+        """One GPS iteration over all worlds; returns per-world diagnostics."""
+        states = list(self.states.values())
+        for state in states:
+            self._sample_and_fit(state)
+        if self.iteration == 0:
+            self.bank.fit_normalization({s.name: s.samples.obs for s in states})
+            self._s_step(self.config.initial_sgd_steps, {s.name: self._controller_targets(s) for s in states})
+        if self.config.algo == "mdgps":
+            self._mdgps_update(states)
+        else:
+            self._badmm_update(states)
+        diagnostics = {s.name: self._diagnose(s) for s in states}
+        self.history.append(diagnostics)
+        self.iteration += 1
+        return diagnostics
+
+    def _sample_and_fit(self, state: WorldState) -> None:
+        c, world = self.config, state.sampler.world
+        with self._timed("sampling"):
+            samples = state.sampler.sample(state.controller)
+        with self._timed("cost"):
+            weights = time_weights(state.sampler.horizon, c.cost_ramp, c.final_cost_multiplier)
+            cost = expand_cost(lambda x, u: world.state_cost(x, u, c.shaping), samples.X, samples.U, weights)
+            check_finite("cost expansion", cost.C, world=state.name, iteration=self.iteration)
+            with torch.no_grad():
+                sampled = (world.state_cost(samples.X, samples.U, c.shaping) * weights).sum(-1)
+        with self._timed("dynamics"):
+            state.dynamics_prior.update(samples.X, samples.U, world=state.name, iteration=self.iteration)
+            dynamics = fit_dynamics(
+                samples.X, samples.U, state.dynamics_prior, world=state.name, iteration=self.iteration
+            )
+        state.previous = state.current
+        state.current = Linearised(frozen(state.controller.gains), dynamics, cost)
+        state.samples = samples
+        distance = world.task.distance(samples.obs["task", "state"].to(torch.float64))[..., -5:].mean(-1)
+        state.diagnostics = {
+            "sampled_cost": float(sampled.mean()),
+            "distance": float(distance.mean()),
+        }
+
+    # --- the policy around the samples ----------------------------------------------------------
+    @torch.no_grad()
+    def _policy_outputs(self, states: Sequence[WorldState]) -> None:
+        """The composed policies' mean actions and covariances at every world's samples."""
+        self.bank.eval()
+        out = self.bank.forward_worlds({s.name: s.samples.obs for s in states})
+        self.bank.train()
+        for state, result in zip(states, out.values(), strict=True):
+            mean = result["loc"].to(torch.float64)
+            check_finite("policy action", mean, world=state.name, iteration=self.iteration)
+            state.policy_mean = mean
+            state.diagnostics["action_gap"] = float(
+                (state.current.gains.mean_actions(state.samples.X) - mean).norm(dim=-1).mean()
+            )
+            with self._timed("dynamics"):
+                state.policy_prior.update(state.samples.X, mean, world=state.name, iteration=self.iteration)
+                state.policy = fit_policy_linearization(
+                    state.samples.X,
+                    mean,
+                    torch.diag_embed(result["scale"].to(torch.float64).pow(2)),
+                    state.policy_prior,
+                    world=state.name,
+                    iteration=self.iteration,
+                )
+
+    def _adapt_step(self, state: WorldState) -> None:
+        """Step-size rule from the improvement predicted by the last C-step vs the one sampled."""
+        prev, cur = state.previous, state.current
+        if prev is None:
+            return
+        before = laplace_cost(prev.gains, prev.dynamics, prev.cost)
+        predicted = before - laplace_cost(cur.gains, prev.dynamics, prev.cost)
+        actual = before - laplace_cost(cur.gains, cur.dynamics, cur.cost)
+        state.step_mult = adapt_step_mult(state.step_mult, predicted, actual, self.config.lqr())
+
+    def _c_step(self, state: WorldState, cost: QuadraticCost, prev: LinearGaussianGains, omega=0.0) -> None:
+        config = self.config.lqr()
+        config.omega = omega
+        with self._timed("lqr"):
+            result = c_step(
+                cost,
+                state.current.dynamics,
+                prev,
+                step_mult=state.step_mult,
+                eta=state.eta,
+                config=config,
+                world=state.name,
+                iteration=self.iteration,
+            )
+        at_cap = result.eta >= config.max_eta * (1 - 1e-6)
+        if bool(at_cap.any()):
+            m = int(at_cap.nonzero()[0, 0])
+            raise NumericalError(
+                f"eta reached its cap {config.max_eta:g} without meeting the KL target "
+                f"(last KL {float(result.kl[m]):.4g}, target {float(result.kl_target[m]):.4g})",
+                world=state.name,
+                condition=m,
+                iteration=self.iteration,
+            )
+        state.eta = result.eta
+        state.controller.set_gains(result.gains)
+        state.diagnostics.update(
+            expected_cost=float(result.expected_cost.mean()),
+            kl=float(result.kl.mean()),
+            eta=float(result.eta.mean()),
+            step_mult=float(state.step_mult.mean()),
+        )
+
+    def _mdgps_update(self, states: Sequence[WorldState]) -> None:
+        """Mirror-descent GPS: C-step in a KL trust region around the linearised policy."""
+        self._policy_outputs(states)
+        for state in states:
+            self._adapt_step(state)
+            self._c_step(state, state.current.cost, state.policy)
+        self._s_step(self.config.sgd_steps, {s.name: self._controller_targets(s) for s in states})
+
+    def _badmm_update(self, states: Sequence[WorldState]) -> None:
+        """BADMM: alternate S-step, dual step and C-step ``inner_iterations`` times."""
+        cfg = self.config.badmm
+        for state in states:
+            self._adapt_step(state)
+        sampling_gains = {s.name: s.current.gains for s in states}
+        for inner in range(cfg.inner_iterations):
+            if self.iteration > 0 or inner > 0:
+                targets = {s.name: self._badmm_targets(s) for s in states}
+                self._s_step(max(1, self.config.sgd_steps // cfg.inner_iterations), targets)
+            self._policy_outputs(states)
+            for state in states:
+                gains = state.controller.gains
+                if self.iteration > 0 or inner > 0:
+                    kl = kl_divergence(gains, state.policy, lqr_forward(gains, state.current.dynamics), True)
+                    state.duals = dual_step(
+                        state.duals, gains, state.policy, state.samples.X, state.policy_mean, kl, cfg,
+                        update_weights=inner == cfg.inner_iterations - 1,
+                    )
+                cost = badmm_cost(state.current.cost, state.policy, state.duals)
+                self._c_step(state, cost, sampling_gains[state.name], omega=state.duals.nu)
+                state.diagnostics["nu"] = float(state.duals.nu.mean())
+
+    # --- the S-step ---------------------------------------------------------------------------
+    def _controller_targets(self, state: WorldState) -> TensorDictBase:
+        gains = state.controller.gains
+        weights = torch.ones(state.samples.X.shape[:-1], dtype=torch.float64)
+        return self._targets(state, gains.mean_actions(state.samples.X), weights)
+
+    def _badmm_targets(self, state: WorldState) -> TensorDictBase:
+        target, weights = badmm_targets(state.controller.gains, state.duals, state.samples.X)
+        return self._targets(state, target, weights)
+
+    def _targets(self, state: WorldState, target: torch.Tensor, weights: torch.Tensor) -> TensorDictBase:
+        """The S-step's training set of one world, flattened ``[M * N * T]``."""
+        precision = state.controller.gains.precision[:, None].expand(*target.shape[:-1], -1, -1)
+        weights = weights * weights.numel() / weights.sum()  # mean 1 ...
+        median = weights[weights > 1e-2].median()
+        weights = weights.clamp_max(2 * median) / median  # ... at most twice the robust median
+        data = state.samples.obs.select(*STATE_KEYS, ("task", "pixels"), strict=False).clone()
+        data["target_action"] = target.to(torch.float32)
+        data["precision"] = precision.to(torch.float32)
+        data["weight"] = weights.to(torch.float32)
+        return data.reshape(-1)
+
+    def _s_step(self, steps: int, targets: dict[str, TensorDictBase]) -> None:
+        c = self.config
+        with self._timed("s_step"):
+            buffers = {}
+            for name, data in targets.items():
+                buffers[name] = ReplayBuffer(
+                    storage=LazyTensorStorage(data.shape[0]), batch_size=c.batch_per_world
+                )
+                buffers[name].extend(data)
+            self.bank.train()
+            for _ in range(steps):
+                batch = TensorDict({name: buf.sample() for name, buf in buffers.items()}, batch_size=[])
+                losses = self.loss(batch)
+                loss = losses["loss_regression"]
+                if not torch.isfinite(loss):
+                    bad = [w for w, v in losses["world_loss"].items() if not torch.isfinite(v)]
+                    raise NumericalError(
+                        "policy regression loss is not finite", world=", ".join(bad), iteration=self.iteration
+                    )
+                self.optimizer.zero_grad(set_to_none=True)
+                loss.backward()
+                self.optimizer.step()
+            self._fit_policy_covariance(targets)
+        for name in targets:
+            self.states[name].diagnostics["regression_loss"] = float(losses["world_loss"][name])
+
+    @torch.no_grad()
+    def _fit_policy_covariance(self, targets: dict[str, TensorDictBase]) -> None:
+        """``var_j = sum w / (sum_i w_i P_i,jj + 2 N T ent_reg)``, pooled over the worlds that
+        share the module owning the action distribution."""
+        pooled: dict[int, list] = {}
+        for name, data in targets.items():
+            module = list(self.bank.parts(self.bank.world(name)).values())[-1]
+            entry = pooled.setdefault(id(module), [module, 0.0, 0.0])
+            w = data["weight"].to(torch.float64)
+            precision = data["precision"].to(torch.float64).diagonal(dim1=-2, dim2=-1)
+            entry[1] = entry[1] + (w[:, None] * precision).sum(0) + 2 * w.numel() * self.config.ent_reg
+            entry[2] = entry[2] + w.sum()
+        for module, precision_sum, weight_sum in pooled.values():
+            module.set_std((weight_sum / precision_sum).sqrt().to(torch.float32))
+
+    # --- reporting ----------------------------------------------------------------------------------
+    def _diagnose(self, state: WorldState) -> dict[str, float]:
+        return dict(sorted(state.diagnostics.items()))
+
+    @torch.no_grad()
+    def evaluate_policy(self, robot: str, task: str, conditions: str = "test", **env_kwargs) -> torch.Tensor:
+        """The composed policy's final distance (mean of the last 5 steps) per condition, deterministic."""
+        env = make_env(
+            robot, task, num_envs=4 if conditions != "random" else env_kwargs.get("num_conditions", 4),
+            conditions=conditions, horizon=self.config.horizon, pixels=self.pixels,
+            seed=self.config.condition_seed, **env_kwargs,
+        )
+        self.bank.eval()
+        with set_exploration_type(ExplorationType.DETERMINISTIC):
+            td = env.rollout(env.horizon, self.bank.compose(robot, task))
+        self.bank.train()
+        task_state = td["next", "task", "state"].to(torch.float64)
+        return env.world.task.distance(task_state)[:, -5:].mean(-1)
