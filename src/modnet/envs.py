@@ -219,6 +219,14 @@ class WorldEnv(EnvBase):
         return None
 
     # --- for evaluation and pictures --------------------------------------------------------------
+    def final_distance(self, rollout: TensorDictBase, last: int = 5) -> torch.Tensor:
+        """The paper's metric: the task's distance averaged over the last ``last`` steps, ``[B]``.
+
+        ``rollout`` is a ``[B, T]`` tensordict from :meth:`rollout` (its ``"next"`` states).
+        """
+        task_state = rollout["next", "task", "state"].to(torch.float64)
+        return self.world.task.distance(task_state)[:, -last:].mean(-1)
+
     def render_frames(self, height: int = PIXELS_SHAPE[0], width: int = PIXELS_SHAPE[1]) -> np.ndarray:
         """RGB frames ``[B, height, width, 3]`` of every copy from the top camera."""
         renderer = open_renderer(self.world.model, height, width)

@@ -114,6 +114,7 @@ class WorldSampler:
     def name(self) -> str:
         return self.world.name
 
+    @torch.no_grad()
     def rollout(self, policy: TensorDictModuleBase | None = None) -> TensorDictBase:
         """One ``[M * N, T]`` batch of trajectories, stored in the replay buffer."""
         td = self.env.rollout(self.horizon, policy, break_when_any_done=False)

@@ -14,7 +14,6 @@ One :meth:`GPSTrainer.step` is one GPS iteration:
 
 Examples:
     >>> from modnet.bank import ModuleBank
-from modnet.envs import make_env
     >>> from modnet.gps.trainer import GPSConfig, GPSTrainer
     >>> worlds = [("three_link", "reach_red"), ("four_link", "reach_black")]
     >>> bank = ModuleBank.build(["three_link", "four_link"], ["reach_red", "reach_black"])
@@ -35,10 +34,8 @@ from typing import Literal
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import LazyTensorStorage, ReplayBuffer
-from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from modnet.bank import ModuleBank
-from modnet.envs import make_env
 from modnet.gps.badmm import BADMMConfig, Multipliers, badmm_cost, badmm_targets, dual_step
 from modnet.gps.controller import LinearGaussianController, LinearGaussianGains
 from modnet.gps.cost import QuadraticCost, Ramp, expand_cost, time_weights
@@ -78,6 +75,7 @@ class GPSConfig:
     kl_step: float = 1.0
     min_step_mult: float = 0.5
     max_step_mult: float = 3.0
+    max_eta: float = 1e16
     sgd_steps: int = 1000
     initial_sgd_steps: int = 1000
     batch_per_world: int = 25
@@ -88,10 +86,18 @@ class GPSConfig:
         default_factory=lambda: DynamicsPriorConfig(max_clusters=20, min_samples_per_cluster=40)
     )
     badmm: BADMMConfig = field(default_factory=BADMMConfig)
+    #: fine-tuning: sample the first iteration from the bank's composed policies and start the
+    #: controllers from their linearisation (instead of fitting the policy to hold-position ones)
+    init_from_policy: bool = False
     seed: int = 0
 
     def lqr(self) -> LQRConfig:
-        return LQRConfig(kl_step=self.kl_step, min_mult=self.min_step_mult, max_mult=self.max_step_mult)
+        return LQRConfig(
+            kl_step=self.kl_step,
+            min_mult=self.min_step_mult,
+            max_mult=self.max_step_mult,
+            max_eta=self.max_eta,
+        )
 
 
 @dataclass
@@ -120,6 +126,7 @@ class WorldState:
     previous: Linearised | None = None
     policy: LinearGaussianGains | None = None  # the policy linearised around the samples
     policy_mean: torch.Tensor | None = None  # [M, N, T, dU]
+    regression_data: ReplayBuffer | None = None  # the S-step's (observation, target) pairs
     diagnostics: dict[str, float] = field(default_factory=dict)
 
 
@@ -203,9 +210,7 @@ class GPSTrainer:
         )
         duals = None
         if c.algo == "badmm":
-            duals = Multipliers.zeros(
-                M, T, sampler.world.state_dim, n, c.badmm.initial_policy_weight
-            )
+            duals = Multipliers.zeros(M, T, sampler.world.state_dim, n, c.badmm.initial_policy_weight)
         generator = torch.Generator().manual_seed(c.seed)
         return WorldState(
             name=sampler.name,
@@ -234,9 +239,15 @@ class GPSTrainer:
     def step(self) -> dict[str, dict[str, float]]:
         """One GPS iteration over all worlds; returns per-world diagnostics."""
         states = list(self.states.values())
+        from_policy = self.iteration == 0 and self.config.init_from_policy
         for state in states:
-            self._sample_and_fit(state)
-        if self.iteration == 0:
+            self._sample_and_fit(state, self._composed(state) if from_policy else None)
+        if from_policy:  # the controllers start where the composed policy is
+            self._policy_outputs(states)
+            for state in states:
+                state.controller.set_gains(state.policy)
+                state.current.gains = frozen(state.policy)
+        elif self.iteration == 0:
             self.bank.fit_normalization({s.name: s.samples.obs for s in states})
             self._s_step(self.config.initial_sgd_steps, {s.name: self._controller_targets(s) for s in states})
         if self.config.algo == "mdgps":
@@ -248,10 +259,17 @@ class GPSTrainer:
         self.iteration += 1
         return diagnostics
 
-    def _sample_and_fit(self, state: WorldState) -> None:
+    def _composed(self, state: WorldState):
+        return self.bank.compose(*self.bank.world(state.name))
+
+    def _sample_and_fit(self, state: WorldState, policy=None) -> None:
+        """Sample the world (with its controllers unless ``policy`` is given), expand the cost
+        and fit the dynamics."""
         c, world = self.config, state.sampler.world
         with self._timed("sampling"):
-            samples = state.sampler.sample(state.controller)
+            self.bank.eval()  # no dropout when a composed policy acts
+            samples = state.sampler.sample(policy or state.controller)
+            self.bank.train()
         with self._timed("cost"):
             weights = time_weights(state.sampler.horizon, c.cost_ramp, c.final_cost_multiplier)
             cost = expand_cost(lambda x, u: world.state_cost(x, u, c.shaping), samples.X, samples.U, weights)
@@ -364,7 +382,13 @@ class GPSTrainer:
                 if self.iteration > 0 or inner > 0:
                     kl = kl_divergence(gains, state.policy, lqr_forward(gains, state.current.dynamics), True)
                     state.duals = dual_step(
-                        state.duals, gains, state.policy, state.samples.X, state.policy_mean, kl, cfg,
+                        state.duals,
+                        gains,
+                        state.policy,
+                        state.samples.X,
+                        state.policy_mean,
+                        kl,
+                        cfg,
                         update_weights=inner == cfg.inner_iterations - 1,
                     )
                 cost = badmm_cost(state.current.cost, state.policy, state.duals)
@@ -398,9 +422,13 @@ class GPSTrainer:
         with self._timed("s_step"):
             buffers = {}
             for name, data in targets.items():
-                buffers[name] = ReplayBuffer(
-                    storage=LazyTensorStorage(data.shape[0]), batch_size=c.batch_per_world
-                )
+                state = self.states[name]
+                if state.regression_data is None:
+                    state.regression_data = ReplayBuffer(
+                        storage=LazyTensorStorage(data.shape[0]), batch_size=c.batch_per_world
+                    )
+                buffers[name] = state.regression_data
+                buffers[name].empty()
                 buffers[name].extend(data)
             self.bank.train()
             for _ in range(steps):
@@ -438,17 +466,102 @@ class GPSTrainer:
     def _diagnose(self, state: WorldState) -> dict[str, float]:
         return dict(sorted(state.diagnostics.items()))
 
-    @torch.no_grad()
-    def evaluate_policy(self, robot: str, task: str, conditions: str = "test", **env_kwargs) -> torch.Tensor:
-        """The composed policy's final distance (mean of the last 5 steps) per condition, deterministic."""
-        env = make_env(
-            robot, task, num_envs=4 if conditions != "random" else env_kwargs.get("num_conditions", 4),
-            conditions=conditions, horizon=self.config.horizon, pixels=self.pixels,
-            seed=self.config.condition_seed, **env_kwargs,
-        )
-        self.bank.eval()
-        with set_exploration_type(ExplorationType.DETERMINISTIC):
-            td = env.rollout(env.horizon, self.bank.compose(robot, task))
-        self.bank.train()
-        task_state = td["next", "task", "state"].to(torch.float64)
-        return env.world.task.distance(task_state)[:, -5:].mean(-1)
+    # --- checkpoints --------------------------------------------------------------------------------
+    def state_dict(self) -> dict:
+        """Everything needed to continue training: bank, optimizer, controllers, priors, RNGs,
+        iteration and history.  Plain tensors, lists, dicts and numbers only, so it loads with
+        ``torch.load(..., weights_only=True)``."""
+        return {
+            "iteration": self.iteration,
+            "bank": self.bank.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "torch_rng": torch.get_rng_state(),
+            "history": self.history,
+            "worlds": {name: _world_state_dict(state) for name, state in self.states.items()},
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        """Restore :meth:`state_dict`; the trainer must have been built with the same worlds."""
+        if set(state["worlds"]) != set(self.states):
+            raise ValueError(
+                f"checkpoint trains worlds {sorted(state['worlds'])}, this trainer {sorted(self.states)}"
+            )
+        self.bank.load_state_dict(state["bank"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        torch.set_rng_state(state["torch_rng"])
+        self.iteration = int(state["iteration"])
+        self.history = list(state["history"])
+        for name, world_state in state["worlds"].items():
+            _load_world_state(self.states[name], world_state)
+
+
+def _fields_dict(obj) -> dict | None:
+    return None if obj is None else {f.name: getattr(obj, f.name) for f in fields(obj)}
+
+
+_gains_dict = _fields_dict  # every factor exactly: a recomputed Cholesky factor would drift
+
+
+def _gains_from(d: dict) -> LinearGaussianGains:
+    return LinearGaussianGains(**d)
+
+
+def _linearised_dict(lin: Linearised | None) -> dict | None:
+    if lin is None:
+        return None
+    return {
+        "gains": _gains_dict(lin.gains),
+        "dynamics": _fields_dict(lin.dynamics),
+        "cost": _fields_dict(lin.cost),
+    }
+
+
+def _linearised_from(d: dict | None) -> Linearised | None:
+    if d is None:
+        return None
+    return Linearised(
+        _gains_from(d["gains"]), LinearGaussianDynamics(**d["dynamics"]), QuadraticCost(**d["cost"])
+    )
+
+
+def _prior_dict(prior) -> dict:
+    gmm = prior.gmm
+    return {
+        "X": prior.X,
+        "U": prior.U,
+        "mu": gmm.mu,
+        "sigma": gmm.sigma,
+        "log_weights": gmm.log_weights,
+        "num_points": gmm.num_points,
+    }
+
+
+def _load_prior(prior, d: dict) -> None:
+    prior.X, prior.U = d["X"], d["U"]
+    gmm = prior.gmm
+    gmm.mu, gmm.log_weights, gmm.num_points = d["mu"], d["log_weights"], d["num_points"]
+    if d["sigma"] is not None:
+        gmm._set_covariances(d["sigma"])
+
+
+def _world_state_dict(state: WorldState) -> dict:
+    return {
+        "controller": _gains_dict(state.controller.gains),
+        "eta": state.eta,
+        "step_mult": state.step_mult,
+        "duals": _fields_dict(state.duals),
+        "current": _linearised_dict(state.current),
+        "dynamics_prior": _prior_dict(state.dynamics_prior),
+        "policy_prior": _prior_dict(state.policy_prior),
+        "prior_rng": state.dynamics_prior.gmm.generator.get_state(),
+    }
+
+
+def _load_world_state(state: WorldState, d: dict) -> None:
+    state.controller.set_gains(_gains_from(d["controller"]))
+    state.eta, state.step_mult = d["eta"], d["step_mult"]
+    state.duals = None if d["duals"] is None else Multipliers(**d["duals"])
+    state.current, state.previous = _linearised_from(d["current"]), None
+    _load_prior(state.dynamics_prior, d["dynamics_prior"])
+    _load_prior(state.policy_prior, d["policy_prior"])
+    state.dynamics_prior.gmm.generator.set_state(d["prior_rng"])

@@ -1,0 +1,115 @@
+"""GPS over several worlds: training lowers every world's cost, errors name their place, state resumes."""
+
+import io
+
+import pytest
+import torch
+
+from modnet.bank import ModuleBank
+from modnet.gps.errors import NumericalError
+from modnet.gps.trainer import GPSConfig, GPSTrainer
+
+ROBOTS, TASKS = ["three_link", "four_link"], ["reach_red", "reach_black"]
+GRID = [(r, t) for r in ROBOTS for t in TASKS]
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def small_config(**overrides) -> GPSConfig:
+    options = dict(
+        samples_per_condition=3, horizon=20, sgd_steps=150, initial_sgd_steps=200, kl_step=2.0, seed=0
+    )
+    options.update(overrides)
+    return GPSConfig(**options)
+
+
+def trainer_for(worlds=GRID, **overrides) -> GPSTrainer:
+    robots = sorted({r for r, _ in worlds})
+    tasks = sorted({t for _, t in worlds})
+    bank = ModuleBank.build(robots, tasks, seed=0, dropout=0.0)
+    return GPSTrainer(bank, worlds, small_config(**overrides))
+
+
+@pytest.mark.parametrize("algo", ["mdgps", "badmm"])
+def test_multi_world_training_lowers_every_worlds_cost(algo):
+    trainer = trainer_for(algo=algo)
+    first = trainer.step()
+    for _ in range(2):
+        last = trainer.step()
+    for world in first:
+        assert last[world]["sampled_cost"] < 0.8 * first[world]["sampled_cost"], (world, first, last)
+        assert last[world]["distance"] < first[world]["distance"], world
+    expected = {"distance", "sampled_cost", "expected_cost", "kl", "eta", "step_mult", "action_gap"}
+    assert expected <= set(last["three_link/reach_red"])
+    if algo == "badmm":
+        assert "nu" in last["three_link/reach_red"]
+
+
+def test_seeded_runs_are_reproducible():
+    a = trainer_for(worlds=GRID[:2]).step()
+    b = trainer_for(worlds=GRID[:2]).step()
+    assert a == b
+
+
+def test_checkpoint_state_resumes_exactly():
+    """Continuing after a save/load round trip gives the same iteration as never stopping."""
+    original = trainer_for(worlds=GRID[:1], algo="badmm")
+    original.step()
+    buffer = io.BytesIO()
+    torch.save(original.state_dict(), buffer)
+    buffer.seek(0)
+    expected = original.step()  # the global RNG is shared: continue the original first
+    state = torch.load(buffer, weights_only=True)
+    resumed = trainer_for(worlds=GRID[:1], algo="badmm")
+    resumed.load_state_dict(state)
+    assert resumed.iteration == 1 and resumed.history == original.history[:1]
+    assert resumed.step() == expected
+    with pytest.raises(ValueError, match="checkpoint trains worlds"):
+        trainer_for(worlds=GRID[1:2]).load_state_dict(state)
+
+
+def test_planted_nan_names_world_condition_and_iteration(monkeypatch):
+    trainer = trainer_for(worlds=GRID[:2])
+    trainer.step()
+    sampler = trainer.states["three_link/reach_black"].sampler
+    sample = sampler.sample
+
+    def poisoned(policy=None):
+        samples = sample(policy)
+        samples.X[1, 0, 5, 0] = float("nan")  # one state of condition 1
+        return samples
+
+    monkeypatch.setattr(sampler, "sample", poisoned)
+    with pytest.raises(NumericalError, match=r"world=three_link/reach_black, condition=1, iteration=1"):
+        trainer.step()
+
+
+def test_eta_at_its_cap_raises_with_the_last_kl():
+    trainer = trainer_for(worlds=GRID[:1], kl_step=1e-9, max_eta=1e-3)
+    with pytest.raises(NumericalError, match=r"eta reached its cap 0.001 .*last KL .*world=three_link/reach_red"):
+        trainer.step()
+
+
+def test_fine_tuning_starts_from_the_composed_policy():
+    """init_from_policy: the first samples come from the trained modules, not from scratch."""
+    teacher = trainer_for(worlds=GRID[:1])
+    for _ in range(3):
+        teacher.step()
+    scratch = trainer_for(worlds=GRID[:1]).step()["three_link/reach_red"]
+    tuned = GPSTrainer(teacher.bank, GRID[:1], small_config(init_from_policy=True))
+    first = tuned.step()["three_link/reach_red"]
+    assert first["distance"] < 0.7 * scratch["distance"]
+
+
+def test_unknown_algorithm_and_missing_modules():
+    bank = ModuleBank.build(["three_link"], ["reach_red"])
+    with pytest.raises(ValueError, match="unknown GPS algorithm 'ilqr'; valid: mdgps, badmm"):
+        GPSTrainer(bank, [("three_link", "reach_red")], GPSConfig(algo="ilqr"))
+    with pytest.raises(ValueError, match="no task module 'reach_black'"):
+        GPSTrainer(bank, [("three_link", "reach_black")], GPSConfig())
