@@ -25,15 +25,19 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--robot", default="three_link")
     parser.add_argument("--task", default="reach")
-    parser.add_argument("--algo", default="mdgps", choices=["mdgps", "badmm"])
-    parser.add_argument("--iterations", type=int, default=10)
+    parser.add_argument("--algo", default="badmm", choices=["mdgps", "badmm"])
+    parser.add_argument("--iterations", type=int, default=12)
     parser.add_argument("--samples", type=int, default=5, help="samples per condition")
+    parser.add_argument("--conditions", type=int, default=16, help="training conditions")
+    parser.add_argument("--dropout", type=float, default=0.0)
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
     torch.set_num_threads(1)
     start = time.perf_counter()
-    bank = ModuleBank.build([args.robot], [args.task], seed=args.seed)
-    config = GPSConfig(algo=args.algo, samples_per_condition=args.samples, seed=args.seed)
+    bank = ModuleBank.build([args.robot], [args.task], seed=args.seed, dropout=args.dropout)
+    config = GPSConfig(
+        algo=args.algo, samples_per_condition=args.samples, num_conditions=args.conditions, seed=args.seed
+    )
     trainer = GPSTrainer(bank, [(args.robot, args.task)], config)
     for i in range(args.iterations):
         diag = trainer.step()[f"{args.robot}/{args.task}"]

@@ -19,6 +19,7 @@ import math
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 import torch
@@ -36,18 +37,32 @@ def _domain_file(kind: str, name: str) -> Path:
 
 
 def distance_cost(
-    offset: torch.Tensor, l2: float = 1.0, l1: float = 0.0, alpha: float = 1e-5
+    offset: torch.Tensor,
+    l2: float = 1.0,
+    l1: float = 0.0,
+    alpha: float = 1e-5,
+    norm: Literal["l1l2", "log"] = "l1l2",
 ) -> torch.Tensor:
-    """GPS's "l2 + log" distance cost ``0.5 l2 |d|^2 + 0.5 l1 log(alpha + |d|^2)`` over the last dim.
+    """GPS's distance costs over the last dim, ``0.5 l2 |d|^2`` plus a term sharp at ``d = 0``.
+
+    ``"l1l2"``: ``l1 sqrt(alpha + |d|^2)`` (convex: a smoothed L1 pull that stays strong
+    near the goal); ``"log"``: ``0.5 l1 log(alpha + |d|^2)`` (concave near the goal, so
+    the LQR must repair its Hessian there).
 
     Examples:
         >>> distance_cost(torch.tensor([[3.0, 4.0]]))
         tensor([12.5000])
+        >>> distance_cost(torch.tensor([[3.0, 4.0]]), l2=0.0, l1=1.0, alpha=0.0)
+        tensor([5.])
     """
     sq = offset.pow(2).sum(-1)
     cost = 0.5 * l2 * sq
-    if l1:
+    if l1 and norm == "l1l2":
+        cost = cost + l1 * torch.sqrt(alpha + sq)
+    elif l1 and norm == "log":
         cost = cost + 0.5 * l1 * torch.log(alpha + sq)
+    elif l1:
+        raise ValueError(f"unknown distance norm {norm!r}; valid: l1l2, log")
     return cost
 
 
@@ -124,11 +139,11 @@ class TaskDefinition:
     goal: str  # the observable where ``moved`` must end up
     horizon: int
     success_distance: float
-    # distance cost 0.5 l2 |d|^2 + 0.5 l1 log(alpha + |d|^2) (GPS's MuJoCo examples' weights)
+    # distance cost 0.5 l2 |d|^2 + l1 sqrt(alpha + |d|^2) (the GPS MuJoCo examples' weights)
     l2: float = 10.0
     l1: float = 0.1
     shaping_weight: float = 0.0  # 0: the task has no shaping term (relative to l2)
-    workspace: tuple[float, float, float, float] = field(default=(-0.9, 0.9, 0.3, 1.0))
+    workspace: tuple[float, float, float, float] = field(default=(-0.6, 0.9, 0.3, 1.0))  # x0, x1, y0, y1
 
     @property
     def scene_path(self) -> Path:
@@ -181,7 +196,8 @@ class TaskDefinition:
         """The extrinsic cost term: distance cost to the goal, plus the shaping term if on."""
         cost = distance_cost(self.target_offset(task_state), self.l2, self.l1)
         if shaping and self.shaping_weight:
-            cost = cost + self.shaping_weight * distance_cost(self.shaping_offset(task_state), self.l2, self.l1)
+            shaping_cost = distance_cost(self.shaping_offset(task_state), self.l2, self.l1)
+            cost = cost + self.shaping_weight * shaping_cost
         return cost
 
     # --- helpers for subclasses ---------------------------------------------------------

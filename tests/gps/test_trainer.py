@@ -23,7 +23,8 @@ def one_thread():
 
 def small_config(**overrides) -> GPSConfig:
     options = dict(
-        samples_per_condition=3, horizon=20, sgd_steps=150, initial_sgd_steps=200, kl_step=2.0, seed=0
+        samples_per_condition=3, num_conditions=4, horizon=20, sgd_steps=150, initial_sgd_steps=200,
+        batch_per_world=32, kl_step=2.0, seed=0,
     )
     options.update(overrides)
     return GPSConfig(**options)
@@ -92,7 +93,8 @@ def test_planted_nan_names_world_condition_and_iteration(monkeypatch):
 
 def test_eta_at_its_cap_raises_with_the_last_kl():
     trainer = trainer_for(worlds=GRID[:1], kl_step=1e-9, max_eta=1e-3)
-    with pytest.raises(NumericalError, match=r"eta reached its cap 0.001 .*last KL .*world=three_link/reach_red"):
+    message = r"eta reached its cap 0.001 .*last KL .*world=three_link/reach_red"
+    with pytest.raises(NumericalError, match=message):
         trainer.step()
 
 

@@ -25,9 +25,10 @@ Examples:
 
 from __future__ import annotations
 
+import contextlib
 import time
 from collections import defaultdict
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field, fields
 from typing import Literal
 
@@ -60,11 +61,11 @@ PHASES = ("sampling", "cost", "dynamics", "lqr", "s_step")
 class GPSConfig:
     """Options of a GPS run (defaults: GPS code and the paper, sized for a 2-core laptop)."""
 
-    algo: Literal["mdgps", "badmm"] = "mdgps"
+    algo: Literal["mdgps", "badmm"] = "badmm"
     samples_per_condition: int = 5
     horizon: int | None = None  # the task's horizon when None
     conditions: str = "train"
-    num_conditions: int | None = None  # the training set's size (4 when None)
+    num_conditions: int | None = 16  # training conditions per world (None: the task's 4)
     condition_seed: int = 0
     shaping: bool = True
     cost_ramp: Ramp = "constant"
@@ -78,7 +79,7 @@ class GPSConfig:
     max_eta: float = 1e16
     sgd_steps: int = 1000
     initial_sgd_steps: int = 1000
-    batch_per_world: int = 25
+    batch_per_world: int = 128
     lr: float = 1e-3
     weight_decay: float = 1e-5
     ent_reg: float = 0.0
@@ -223,17 +224,11 @@ class GPSTrainer:
             duals=duals,
         )
 
-    def _timed(self, phase: str):
-        trainer = self
-
-        class _Timer:
-            def __enter__(self):
-                self.start = time.perf_counter()
-
-            def __exit__(self, *exc):
-                trainer.timings[phase] += time.perf_counter() - self.start
-
-        return _Timer()
+    @contextlib.contextmanager
+    def _timed(self, phase: str) -> Iterator[None]:
+        start = time.perf_counter()
+        yield
+        self.timings[phase] += time.perf_counter() - start
 
     # --- one iteration ------------------------------------------------------------------------
     def step(self) -> dict[str, dict[str, float]]:
