@@ -34,7 +34,11 @@ class BADMMConfig:
     kl_lower_std: float = 1.0  # halve nu_t where KL_t < mean - kl_lower_std * std
     kl_upper_std: float = 0.5  # double nu_t where KL_t >= mean + kl_upper_std * std
     min_policy_weight: float = 1e-6
-    max_policy_weight: float = 1e4
+    #: bounds that keep dual ascent from running away when the policy cannot match its
+    #: controllers exactly: nu_t at most this, and the S-step target shift
+    #: ``|nu_t Sigma_t lambda_k|`` at most ``max_target_shift`` (action units) per step
+    max_policy_weight: float = 0.1
+    max_target_shift: float = 1.0
 
 
 @dataclass
@@ -91,15 +95,18 @@ def dual_step(
 ) -> Multipliers:
     """One dual update from the controllers' and the policy's actions at the samples.
 
-    ``lambda_k -= rate nu_t P_t mean_n(u_traj - u_pol)``; ``lambda_K -= rate_covar nu_t P_t
-    (K_traj - K_pol)``; when ``update_weights``, ``nu_t`` halves where ``KL_t`` (``[M, T]``,
-    controller to policy) is below ``mean - lower std`` and doubles at or above ``mean + upper std``.
+    ``lambda_k -= rate nu_t P_t mean_n(u_traj - u_pol)`` (rescaled so that the S-step target
+    shift stays within ``max_target_shift``); ``lambda_K -= rate_covar nu_t P_t (K_traj - K_pol)``;
+    when ``update_weights``, ``nu_t`` halves where ``KL_t`` (``[M, T]``, controller to policy) is
+    below ``mean - lower std`` and doubles at or above ``mean + upper std`` (within its bounds).
     """
     nu = duals.nu
     P = gains.precision
     gap = (gains.mean_actions(X) - policy_mean).mean(dim=1)  # [M, T, dU]
     lambda_k = duals.lambda_k - config.dual_rate * nu[..., None] * (P @ gap.unsqueeze(-1)).squeeze(-1)
     lambda_K = duals.lambda_K - config.dual_rate_covar * nu[..., None, None] * (P @ (gains.K - policy.K))
+    shift = (nu[..., None] * (gains.cov @ lambda_k.unsqueeze(-1)).squeeze(-1)).norm(dim=-1, keepdim=True)
+    lambda_k = lambda_k * (config.max_target_shift / shift.clamp_min(1e-12)).clamp(max=1.0)
     if update_weights:
         mean = kl_per_step.mean(dim=1, keepdim=True)
         std = kl_per_step.std(dim=1, keepdim=True)
