@@ -21,6 +21,7 @@ import statistics  # noqa: E402
 import time  # noqa: E402
 
 import torch  # noqa: E402
+from _timing import median_ms  # noqa: E402
 
 from modnet.gps.dynamics import (  # noqa: E402
     DynamicsPriorGMM,
@@ -62,14 +63,6 @@ def per_step_fit(X: torch.Tensor, U: torch.Tensor, prior: DynamicsPriorGMM | Non
     return torch.stack(Fs, 1), torch.stack(fs, 1), torch.stack(Ds, 1)
 
 
-def median_ms(fn, repeats: int) -> float:
-    fn()
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append((time.perf_counter() - start) * 1e3)
-    return statistics.median(times)
 
 
 def main() -> None:

@@ -18,11 +18,10 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import argparse  # noqa: E402
 import json  # noqa: E402
-import statistics  # noqa: E402
-import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
+from _timing import median_ms  # noqa: E402
 
 from modnet.gps.controller import LinearGaussianGains  # noqa: E402
 from modnet.gps.cost import QuadraticCost  # noqa: E402
@@ -94,14 +93,6 @@ def numpy_backward(C, c, F, f, K_prev, k_prev, P_prev, eta):
     return out_K, out_k, out_chol
 
 
-def median_ms(fn, repeats: int) -> float:
-    fn()  # warm-up
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append((time.perf_counter() - start) * 1e3)
-    return statistics.median(times)
 
 
 def main() -> None:

@@ -23,13 +23,6 @@ TASKS = ["reach_red", "reach_black"]
 DETERMINISTIC = ExplorationType.DETERMINISTIC
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """Tiny CPU tensors: one thread, so a busy shared core cannot stall OpenMP barriers."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 def observations(world, batch=(6,), seed=0, pixels=False) -> TensorDict:

@@ -18,15 +18,6 @@ from modnet.modules import (
 from modnet.specs import PIXELS_SHAPE
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """Tiny CPU tensors: one thread, so a busy shared core cannot stall OpenMP barriers."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 def task_arch(**overrides) -> ModuleArch:
     options = dict(factor="task", head="interface", out_dim=12, observations=((("task", "state"), 6),))
     return ModuleArch(**(options | overrides))

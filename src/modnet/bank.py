@@ -53,6 +53,7 @@ from torch import nn
 from torchrl.envs.utils import ExplorationType
 from torchrl.modules import IndependentNormal, ProbabilisticActor
 
+from modnet.files import write_atomically
 from modnet.modules import BankModule, ModuleArch, check_positive_ints, key_to_str
 from modnet.worlds import robot_spec, task_spec
 
@@ -207,17 +208,6 @@ def _seeded(seed: int | None, *labels: str) -> Iterator[None]:
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(zlib.crc32("/".join((str(seed), *labels)).encode()))
         yield
-
-
-def _write_atomically(path: Path, save: Callable[[Path], None]) -> None:
-    """``save`` to a temporary file beside ``path``, then ``os.replace`` it into place."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        save(tmp)
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
 
 
 def _sizes(arch: ModuleArch) -> dict[str, Any]:
@@ -558,7 +548,7 @@ class ModuleBank(nn.Module):
         entries = []
         for factor, name, module in self._module_names():
             state = {k: v.detach().clone() for k, v in module.state_dict().items()}
-            _write_atomically(path / factor / f"{name}.pt", lambda p, s=state: torch.save(s, p))
+            write_atomically(path / factor / f"{name}.pt", lambda p, s=state: torch.save(s, p))
             entries.append(
                 {
                     "factor": factor,
@@ -583,7 +573,7 @@ class ModuleBank(nn.Module):
             "modules": entries,
         }
         text = json.dumps(manifest, indent=2)
-        _write_atomically(path / MANIFEST, lambda p: p.write_text(text))
+        write_atomically(path / MANIFEST, lambda p: p.write_text(text))
         return path
 
     @classmethod

@@ -106,6 +106,7 @@ class WorldEnv(EnvBase):
         self._condition = np.arange(num_envs) % len(self.condition_params)
         self._step_count = np.zeros(num_envs, dtype=np.int64)
         self._renderer = open_renderer(model, *PIXELS_SHAPE[:2]) if pixels else None
+        self._picture_renderers: dict[tuple[int, int], mujoco.Renderer] = {}  # render_frames' sizes
         self._frames = np.zeros((num_envs, *PIXELS_SHAPE), dtype=np.uint8) if pixels else None
         self._camera = "top"
         # mujoco releases the GIL while stepping: split the copies over a few threads
@@ -229,12 +230,13 @@ class WorldEnv(EnvBase):
 
     def render_frames(self, height: int = PIXELS_SHAPE[0], width: int = PIXELS_SHAPE[1]) -> np.ndarray:
         """RGB frames ``[B, height, width, 3]`` of every copy from the top camera."""
-        renderer = open_renderer(self.world.model, height, width)
+        if (height, width) not in self._picture_renderers:
+            self._picture_renderers[height, width] = open_renderer(self.world.model, height, width)
+        renderer = self._picture_renderers[height, width]
         frames = []
         for data in self._datas:
             renderer.update_scene(data, camera=self._camera)
             frames.append(renderer.render())
-        renderer.close()
         return np.stack(frames)
 
 

@@ -13,12 +13,6 @@ ROBOTS, TASKS = ["three_link", "four_link"], ["reach_red", "reach_black"]
 GRID = [(r, t) for r in ROBOTS for t in TASKS]
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 def small_config(**overrides) -> GPSConfig:

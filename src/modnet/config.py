@@ -1,0 +1,281 @@
+"""Typed run configuration: what ``run.py`` hands the library, and the Hydra schema it is checked against.
+
+:class:`RunConfig` is the whole job (universe, held-out world, GPS budget, bank architecture,
+evaluation, logger).  Its ``gps`` and ``bank`` parts are not hand-written copies of the
+library's :class:`~modnet.gps.trainer.GPSConfig` and :class:`~modnet.bank.BankConfig`: they
+are derived from them field by field (:func:`schema_of`), so a field added to or retuned
+in the library shows up in ``conf/`` with the library's default, and :func:`build` turns
+the checked values back into the library's dataclasses.
+
+Nothing here reads Hydra's config object: ``run.py`` turns it into a :class:`RunConfig`
+(``OmegaConf.to_object``) and hands that in.
+
+Examples:
+    >>> run = RunConfig(universe="tiny")
+    >>> run.gps.iterations, run.gps_config() == GPSConfig()  # the library's defaults
+    (10, True)
+    >>> run.gps.algo = "ilqr"
+    >>> run.gps_config()
+    Traceback (most recent call last):
+    ...
+    modnet.config.ConfigError: gps.algo must be one of 'mdgps', 'badmm', got 'ilqr'
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import typing
+from collections.abc import Mapping
+from dataclasses import MISSING, dataclass, field, fields, is_dataclass
+from typing import Any
+
+from modnet.bank import BankConfig
+from modnet.evaluate import FINETUNE_STARTS
+from modnet.gps.badmm import BADMMConfig
+from modnet.gps.dynamics import DynamicsPriorConfig
+from modnet.gps.trainer import GPSConfig
+from modnet.universes import Split, Universe, get_universe
+
+__all__ = [
+    "BankSchema",
+    "ConfigError",
+    "EvalConfig",
+    "GPSSchema",
+    "LoggerConfig",
+    "RunConfig",
+    "build",
+    "register_configs",
+    "schema_of",
+    "validate",
+]
+
+LOGGERS = ("wandb", "csv", "tensorboard", "none")
+
+
+class ConfigError(ValueError):
+    """A configuration value the run cannot use, named by its dotted key."""
+
+
+def _hydra_type(hint: Any) -> Any:
+    """The annotation OmegaConf accepts for ``hint``: ``Literal`` choices become ``str``."""
+    if typing.get_origin(hint) is typing.Literal:
+        return str
+    return hint
+
+
+def schema_of(
+    cls: type,
+    name: str,
+    *,
+    nested: Mapping[type, type] | None = None,
+    extra: tuple[tuple[str, type, Any], ...] = (),
+    exclude: tuple[str, ...] = (),
+) -> type:
+    """An OmegaConf-compatible dataclass ``name`` with the fields and defaults of dataclass ``cls``.
+
+    ``Literal`` fields become ``str`` (:func:`build` checks the choices); a nested dataclass
+    field takes the schema ``nested`` maps its class to; ``extra`` adds ``(name, type,
+    default)`` fields that only the run uses (e.g. the number of iterations) and ``exclude``
+    hides library fields the run sets itself.  Assign the result to a module-level name
+    equal to ``name`` in this module (configs pickle their schema by name).
+
+    Examples:
+        >>> from modnet.gps.badmm import BADMMConfig
+        >>> schema = schema_of(BADMMConfig, "BADMMSchema")
+        >>> schema().inner_iterations == BADMMConfig().inner_iterations
+        True
+    """
+    hints = typing.get_type_hints(cls)
+    specs: list[tuple[str, Any, Any]] = []
+    for f in fields(cls):
+        if f.name in exclude:
+            continue
+        default = f.default if f.default is not MISSING else f.default_factory()  # type: ignore[misc]
+        if is_dataclass(default):
+            schema = (nested or {})[type(default)]
+            values = {k.name: getattr(default, k.name) for k in fields(default)}
+            specs.append((f.name, schema, field(default_factory=lambda s=schema, v=values: s(**v))))
+        else:
+            specs.append((f.name, _hydra_type(hints[f.name]), field(default=default)))
+    specs += [(n, t, field(default=d)) for n, t, d in extra]
+    schema = dataclasses.make_dataclass(name, specs)
+    schema.__module__ = __name__
+    schema.__doc__ = (
+        f"Hydra schema of :class:`{cls.__module__}.{cls.__qualname__}` (same fields and defaults)."
+    )
+    return schema
+
+
+def build(cls: type, values: Any, prefix: str = "") -> Any:
+    """The library dataclass ``cls`` from a schema instance or mapping with (a subset of) its fields.
+
+    Lists become tuples, nested dataclasses are built recursively, and ``Literal`` fields
+    are checked against their choices (:class:`ConfigError` naming the key and the choices).
+    """
+    if is_dataclass(values):
+        values = {f.name: getattr(values, f.name) for f in fields(values)}
+    hints = typing.get_type_hints(cls)
+    kwargs = {}
+    for f in fields(cls):
+        if f.name not in values:
+            continue
+        value, hint, key = values[f.name], hints[f.name], f"{prefix}{f.name}"
+        if is_dataclass(hint):
+            value = build(hint, value, f"{key}.")
+        elif isinstance(value, list):
+            value = tuple(value)
+        elif typing.get_origin(hint) is typing.Literal and value not in typing.get_args(hint):
+            choices = ", ".join(repr(c) for c in typing.get_args(hint))
+            raise ConfigError(f"{key} must be one of {choices}, got {value!r}")
+        kwargs[f.name] = value
+    try:
+        return cls(**kwargs)
+    except (TypeError, ValueError) as err:
+        raise ConfigError(f"{prefix.rstrip('.') or cls.__name__}: {err}") from err
+
+
+DynamicsPriorSchema = schema_of(DynamicsPriorConfig, "DynamicsPriorSchema")
+BADMMSchema = schema_of(BADMMConfig, "BADMMSchema")
+GPSSchema = schema_of(
+    GPSConfig,
+    "GPSSchema",
+    nested={DynamicsPriorConfig: DynamicsPriorSchema, BADMMConfig: BADMMSchema},
+    extra=(("iterations", int, 10),),  # GPS iterations of the main training run
+    exclude=("init_from_policy",),  # set by the fine-tuning driver only
+)
+BankSchema = schema_of(
+    BankConfig,
+    "BankSchema",
+    extra=(("policy", str, "modular"),),  # "modular", or "monolithic": one network per world
+)
+
+
+@dataclass
+class EvalConfig:
+    """The zero-shot evaluation, its pictures and the optional fine-tuning comparison.
+
+    Args:
+        conditions: the condition set of the zero-shot table ("test": the paper's 4 test positions).
+        num_conditions: how many of them (None: the set's 4).
+        random_conditions: when > 0, also evaluate on this many random conditions (mean, 95% CI).
+        random_seed: the random conditions' seed.
+        baseline_seed: initialisation seed of the random-network baseline.
+        frame_height, frame_width: size of the final-position pictures (at most 512 x 640).
+        gif_frames: at most this many frames in the rollout GIF.
+        finetune_iterations: GPS iterations per fine-tuning start (with ``finetune=true``).
+        finetune_starts: which starts to compare (composed, wrong_task, scratch_shaping,
+            scratch_no_shaping).
+    """
+
+    conditions: str = "test"
+    num_conditions: int | None = None
+    random_conditions: int = 0
+    random_seed: int = 0
+    baseline_seed: int = 12345
+    frame_height: int = 256
+    frame_width: int = 320
+    gif_frames: int = 25
+    finetune_iterations: int = 10
+    finetune_starts: list[str] = field(default_factory=lambda: list(FINETUNE_STARTS))
+
+
+@dataclass
+class LoggerConfig:
+    """Where metrics, the resolved config and figures go (``torchrl.record.loggers``).
+
+    Args:
+        backend: "wandb" (offline, inside the run directory), "csv", "tensorboard" or "none".
+        project: the wandb project / the experiment's family name.
+        mode: wandb's mode; "offline" keeps everything on this machine.
+    """
+
+    backend: str = "wandb"
+    project: str = "modnet"
+    mode: str = "offline"
+
+
+@dataclass
+class RunConfig:
+    """One job of ``run.py``: hold out a world of a universe, train the rest, evaluate zero-shot.
+
+    Args:
+        universe: a name from :data:`modnet.universes.UNIVERSES` (the ``universe`` config group).
+        holdout: ``ROBOT/TASK``; None holds out the universe's own; ``all`` (with ``-m``)
+            sweeps every world.
+        seed: initialisation seed of the bank (``gps.seed`` follows it in ``conf/config.yaml``).
+        resume: continue from the run directory's checkpoint.
+        finetune: after the zero-shot evaluation, compare GPS fine-tuning from four starts.
+    """
+
+    universe: str = dataclasses.MISSING  # type: ignore[assignment]
+    holdout: str | None = None
+    seed: int = 0
+    resume: bool = False
+    finetune: bool = False
+    gps: GPSSchema = field(default_factory=GPSSchema)  # type: ignore[valid-type]
+    bank: BankSchema = field(default_factory=BankSchema)  # type: ignore[valid-type]
+    eval: EvalConfig = field(default_factory=EvalConfig)
+    logger: LoggerConfig = field(default_factory=LoggerConfig)
+
+    def gps_config(self, **changes: Any) -> GPSConfig:
+        """The library's :class:`GPSConfig` of this run (``changes`` override fields)."""
+        return dataclasses.replace(build(GPSConfig, self.gps, "gps."), **changes)
+
+    def bank_config(self) -> BankConfig:
+        return build(BankConfig, self.bank, "bank.")
+
+    def check(self) -> None:
+        """Values no schema type can rule out; :class:`ConfigError` naming the key."""
+        self.gps_config()
+        self.bank_config()
+        if self.bank.policy not in ("modular", "monolithic"):
+            raise ConfigError(f"bank.policy must be 'modular' or 'monolithic', got {self.bank.policy!r}")
+        if self.gps.iterations < 1:
+            raise ConfigError(f"gps.iterations must be at least 1, got {self.gps.iterations}")
+        if self.logger.backend not in LOGGERS:
+            raise ConfigError(
+                f"logger.backend must be one of {', '.join(LOGGERS)}, got {self.logger.backend!r}"
+            )
+        unknown = sorted(set(self.eval.finetune_starts) - set(FINETUNE_STARTS))
+        if unknown:
+            raise ConfigError(f"eval.finetune_starts: unknown {unknown}; valid: {', '.join(FINETUNE_STARTS)}")
+        if not (1 <= self.eval.frame_height <= 512 and 1 <= self.eval.frame_width <= 640):
+            raise ConfigError("eval.frame_height/frame_width must be at most 512 x 640 (the scene's buffer)")
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain nested dict (for the logger and results)."""
+        return dataclasses.asdict(self)
+
+
+def validate(run: RunConfig) -> tuple[Universe, Split]:
+    """Check everything that can be checked before any work; the universe and its train/held-out split.
+
+    Raises :class:`ConfigError` or :class:`~modnet.universes.UniverseError` with one message
+    naming what is wrong and the valid choices.
+    """
+    universe = get_universe(run.universe)
+    if run.holdout == "all":
+        raise ConfigError(
+            "holdout=all is a leave-one-world-out sweep: run it as a multirun, `python run.py -m holdout=all`"
+        )
+    split = universe.split(run.holdout)
+    run.check()
+    return universe, split
+
+
+def register_configs() -> None:
+    """Register :class:`RunConfig` as the schema ``run_schema`` that ``conf/config.yaml`` extends."""
+    from hydra.core.config_store import ConfigStore
+
+    ConfigStore.instance().store(name="run_schema", node=RunConfig)
+
+
+def flatten(tree: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    """``{"gps": {"lr": 1e-3}}`` -> ``{"gps.lr": 1e-3}`` (lists and None kept as they are)."""
+    flat: dict[str, Any] = {}
+    for key, value in tree.items():
+        if isinstance(value, Mapping):
+            flat.update(flatten(value, f"{prefix}{key}."))
+        else:
+            flat[f"{prefix}{key}"] = value
+    return flat

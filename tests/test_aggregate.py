@@ -1,0 +1,84 @@
+"""Sweep directory -> robot x task heatmap; a real 2-job joblib multirun of run.py feeds it."""
+
+import json
+import math
+import subprocess
+import sys
+
+import pytest
+from test_run import ENV, ROOT, run_py
+
+from modnet.aggregate import AggregateError, collect, main
+
+
+def write_results(path, holdout, mean, universe="tiny"):
+    path.mkdir(parents=True)
+    results = {
+        "universe": universe,
+        "holdout": holdout,
+        "robots": ["three_link", "four_link"],
+        "tasks": ["reach_red", "reach_black"],
+        "methods": {"composed": {"mean": mean}},
+    }
+    (path / "results.json").write_text(json.dumps(results))
+
+
+def test_cells_hold_each_held_out_worlds_composed_distance_averaged_over_repeats(tmp_path):
+    write_results(tmp_path / "0", "four_link/reach_black", 0.2)
+    write_results(tmp_path / "1", "four_link/reach_black", 0.4)  # another seed of the same world
+    write_results(tmp_path / "nested" / "2", "three_link/reach_red", 0.9)
+    heatmap = collect(tmp_path)
+    assert heatmap.robots == ["three_link", "four_link"] and heatmap.tasks == ["reach_red", "reach_black"]
+    assert heatmap.distance[1, 1] == pytest.approx(0.3) and heatmap.distance[0, 0] == pytest.approx(0.9)
+    assert math.isnan(heatmap.distance[0, 1]) and heatmap.runs.tolist() == [[1, 0], [0, 2]]
+
+
+def test_cli_writes_png_and_csv_and_refuses_empty_or_mixed_sweeps(tmp_path, capsys):
+    write_results(tmp_path / "0", "four_link/reach_black", 0.25)
+    main([str(tmp_path)])
+    assert "1 of 4 worlds held out" in capsys.readouterr().out
+    assert (tmp_path / "heatmap.csv").read_text().splitlines() == [
+        "robot,reach_red,reach_black",
+        "three_link,,",
+        "four_link,,0.250000",
+    ]
+    assert (tmp_path / "heatmap.png").stat().st_size > 1000
+    with pytest.raises(AggregateError, match="no results.json"):
+        collect(tmp_path / "0" / "missing")
+    write_results(tmp_path / "1", "three_link/reach_red", 0.5, universe="manipulation")
+    with pytest.raises(AggregateError, match="mixes universes"):
+        collect(tmp_path)
+
+
+def test_a_two_job_joblib_multirun_writes_two_results_and_aggregates(tmp_path):
+    done = run_py(
+        "-m",
+        "universe=tiny",
+        "logger=csv",
+        "hydra/launcher=joblib",
+        "hydra.launcher.n_jobs=2",
+        "holdout=four_link/reach_black,three_link/reach_red",
+        f"hydra.sweep.dir={tmp_path}",
+        timeout=300,
+    )
+    assert done.returncode == 0, done.stderr[-3000:]
+    results = sorted(tmp_path.rglob("results.json"))
+    assert len(results) == 2
+    assert {json.loads(r.read_text())["holdout"] for r in results} == {
+        "four_link/reach_black",
+        "three_link/reach_red",
+    }
+    aggregated = subprocess.run(
+        [sys.executable, "-m", "modnet.aggregate", str(tmp_path)],
+        cwd=ROOT,
+        env=ENV,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert aggregated.returncode == 0, aggregated.stderr
+    assert (tmp_path / "heatmap.png").exists()
+    rows = (tmp_path / "heatmap.csv").read_text().splitlines()
+    assert rows[0] == "robot,reach_red,reach_black"
+    assert rows[1].split(",")[1] and not rows[1].split(",")[2]  # three_link/reach_red held out
+    assert rows[2].split(",")[2] and not rows[2].split(",")[1]  # four_link/reach_black held out

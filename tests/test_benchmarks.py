@@ -1,0 +1,29 @@
+"""The benchmark scripts: each ends with one JSON line; the single-world GPS run succeeds (slow)."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+BENCHMARKS = Path(__file__).resolve().parent.parent / "benchmarks"
+
+
+def last_json(*args: str, timeout: float = 600) -> dict:
+    out = subprocess.run(
+        [sys.executable, *args], capture_output=True, text=True, timeout=timeout, check=True, cwd=BENCHMARKS
+    )
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+@pytest.mark.slow
+def test_gps_on_one_world_brings_the_policy_within_the_success_distance():
+    figures = last_json("gps_single_world.py", "--robot", "three_link", "--task", "reach", timeout=1200)
+    assert len(figures["final_distance"]) == 4
+    assert max(figures["final_distance"]) < figures["success_distance"], figures
+
+
+def test_lqr_benchmark_reports_a_ratio_against_numpy():
+    figures = last_json("lqr.py", "--repeats", "3")
+    assert figures["max_abs_diff_K_k_chol"] < 1e-9 and figures["speedup_numpy_over_batched"] > 0

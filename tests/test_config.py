@@ -1,0 +1,190 @@
+"""Typed run config, the conf/ groups, universes and their validation (all in-process, seconds)."""
+
+import dataclasses
+
+import pytest
+from hydra import compose, initialize_config_dir
+from test_run import ROOT, load_run_module
+from test_run import composed_run as composed
+
+from modnet.bank import BankConfig
+from modnet.config import (
+    BankSchema,
+    ConfigError,
+    GPSSchema,
+    RunConfig,
+    flatten,
+    register_configs,
+    validate,
+)
+from modnet.gps.trainer import GPSConfig
+from modnet.universes import UNIVERSES, Universe, UniverseError, get_universe, main, parse_world
+
+
+# --- schemas derived from the library's dataclasses --------------------------------------------------
+def test_schemas_hold_every_library_field_with_its_default():
+    gps_fields = {f.name for f in dataclasses.fields(GPSSchema)}
+    assert {f.name for f in dataclasses.fields(GPSConfig)} - gps_fields == {"init_from_policy"}
+    assert {f.name for f in dataclasses.fields(BankConfig)} <= {
+        f.name for f in dataclasses.fields(BankSchema)
+    }
+    run = RunConfig(universe="tiny")
+    assert run.gps_config() == GPSConfig()
+    assert run.bank_config() == BankConfig()
+
+
+def test_overrides_reach_the_library_configs():
+    run = composed(
+        "universe=tiny",
+        "gps.sgd_steps=7",
+        "gps.dynamics_prior.max_clusters=3",
+        "bank.task_hidden=[16]",
+        "algo=badmm",
+        "seed=4",
+    )
+    config = run.gps_config()
+    assert (config.sgd_steps, config.dynamics_prior.max_clusters, config.algo, config.seed) == (
+        7,
+        3,
+        "badmm",
+        4,
+    )
+    assert run.bank_config().task_hidden == (16,)
+
+
+def test_literal_choices_and_values_no_type_rules_out_fail_with_the_key():
+    run = RunConfig(universe="tiny")
+    run.gps.cost_ramp = "cubic"
+    with pytest.raises(ConfigError, match=r"gps\.cost_ramp must be one of 'constant', 'linear'"):
+        run.gps_config()
+    for key, value, message in [
+        ("bank.policy", "hybrid", "bank.policy must be"),
+        ("logger.backend", "mlflow", "logger.backend must be one of wandb, csv"),
+        ("gps.iterations", 0, "gps.iterations must be at least 1"),
+        ("bank.dropout", 1.5, "dropout must be a probability"),
+    ]:
+        run = RunConfig(universe="tiny")
+        part, name = key.split(".")
+        setattr(getattr(run, part), name, value)
+        with pytest.raises(ConfigError, match=message):
+            run.check()
+
+
+@pytest.mark.parametrize("universe", list(UNIVERSES))
+def test_every_universe_option_composes_and_validates(universe):
+    run = composed(f"universe={universe}")
+    loaded, split = validate(run)
+    assert loaded is UNIVERSES[universe] and "/".join(split.holdout) == loaded.holdout
+    assert len(split.training) == len(loaded.robots) * len(loaded.tasks) - 1
+
+
+@pytest.mark.parametrize(
+    "override, key, value",
+    [
+        ("algo=badmm", "gps.algo", "badmm"),
+        ("policy=monolithic", "bank.policy", "monolithic"),
+        ("logger=csv", "logger.backend", "csv"),
+        ("logger=none", "logger.backend", "none"),
+        ("logger=tensorboard", "logger.backend", "tensorboard"),
+    ],
+)
+def test_config_groups_set_their_keys(override, key, value):
+    run = composed("universe=tiny", override)
+    part, name = key.split(".")
+    assert getattr(getattr(run, part), name) == value
+
+
+def test_launchers_for_parallel_and_slurm_sweeps_compose():
+    register_configs()
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base=None):
+        slurm = compose("config", overrides=["hydra/launcher=slurm"], return_hydra_config=True)
+        joblib = compose("config", overrides=["hydra/launcher=joblib"], return_hydra_config=True)
+    assert slurm.hydra.launcher._target_.endswith("SlurmLauncher") and slurm.hydra.launcher.cpus_per_task == 2
+    assert joblib.hydra.launcher._target_.endswith("JoblibLauncher")
+
+
+def test_defaults_are_the_paper_universe_wandb_offline_and_the_gps_seed_follows_the_run_seed():
+    run = composed()
+    assert (run.universe, run.holdout, run.logger.backend, run.logger.mode) == (
+        "color_reach_state",
+        None,
+        "wandb",
+        "offline",
+    )
+    assert composed("seed=3").gps_config().seed == 3
+    tiny = composed("universe=tiny")
+    assert (tiny.gps.horizon, tiny.gps.iterations) == (15, 2)
+
+
+def test_flatten_gives_dotted_keys():
+    assert flatten({"gps": {"lr": 0.1, "badmm": {"dual_rate": 0.2}}, "seed": 0}) == {
+        "gps.lr": 0.1,
+        "gps.badmm.dual_rate": 0.2,
+        "seed": 0,
+    }
+
+
+# --- universes and the held-out world ---------------------------------------------------------------------
+def test_validation_names_what_is_missing_and_the_valid_choices():
+    with pytest.raises(UniverseError, match="unknown universe 'colour'; valid universes: color_reach_state"):
+        validate(RunConfig(universe="colour"))
+    with pytest.raises(
+        UniverseError, match="'five_link/reach_red' is not in universe 'tiny'.*robot 'five_link'"
+    ):
+        validate(RunConfig(universe="tiny", holdout="five_link/reach_red"))
+    with pytest.raises(UniverseError, match="task 'push' not in its grid.*tasks: reach_red, reach_black"):
+        validate(RunConfig(universe="tiny", holdout="four_link/push"))
+    with pytest.raises(UniverseError, match="ROBOT/TASK"):
+        validate(RunConfig(universe="tiny", holdout="four_link"))
+    with pytest.raises(ConfigError, match="python run.py -m holdout=all"):
+        validate(RunConfig(universe="tiny", holdout="all"))
+
+
+def test_a_held_out_robot_or_task_that_no_training_world_covers_is_refused():
+    one_robot = Universe(
+        "one_robot",
+        robots=("four_link",),
+        tasks=("reach_red", "reach_black"),
+        holdout="four_link/reach_black",
+    )
+    with pytest.raises(UniverseError, match="no training world covers its task 'reach_black'"):
+        one_robot.split()
+    one_task = Universe(
+        "one_task", robots=("three_link", "four_link"), tasks=("push",), holdout="four_link/push"
+    )
+    with pytest.raises(UniverseError, match="no training world covers its robot 'four_link', so"):
+        one_task.split()
+    lonely = Universe("lonely", robots=("four_link",), tasks=("push",), holdout="four_link/push")
+    with pytest.raises(UniverseError, match="its robot 'four_link' or its task 'push'"):
+        lonely.split()
+
+
+def test_universes_are_valid_grids_and_unknown_robots_are_refused():
+    for universe in UNIVERSES.values():
+        universe.split()  # the default held-out world is always composable
+    with pytest.raises(ValueError, match="unknown robot 'six_link'"):
+        Universe("bad", robots=("six_link",), tasks=("push",), holdout="six_link/push")
+    assert parse_world("four_link/push") == ("four_link", "push")
+    assert get_universe("color_reach").pixels and not get_universe("color_reach_state").pixels
+
+
+def test_universes_cli_lists_the_worlds_of_a_universe(capsys):
+    main(["list-worlds", "tiny"])
+    assert capsys.readouterr().out.strip() == (
+        "three_link/reach_red,three_link/reach_black,four_link/reach_red,four_link/reach_black"
+    )
+    main(["list"])
+    assert "manipulation: three_link, four_link, five_link" in capsys.readouterr().out
+
+
+def test_holdout_all_expands_to_every_world_in_a_multirun_only():
+    run = load_run_module()
+    argv = ["run.py", "-m", "universe=tiny", "holdout=all"]
+    assert run.expand_holdout_all(argv)[-1] == (
+        "holdout=three_link/reach_red,three_link/reach_black,four_link/reach_red,four_link/reach_black"
+    )
+    assert run.expand_holdout_all(["run.py", "holdout=all"]) == ["run.py", "holdout=all"]
+    default = run.expand_holdout_all(["run.py", "--multirun", "holdout=all"])[-1]
+    assert default.count(",") == 11 and "three_link_short/reach_yellow" in default  # color_reach_state
+    with pytest.raises(SystemExit, match="one universe"):
+        run.expand_holdout_all(["run.py", "-m", "universe=tiny,manipulation", "holdout=all"])

@@ -1,0 +1,135 @@
+"""Zero-shot protocol, baselines, rollouts with frames, fine-tuning starts (in-process, tiny worlds)."""
+
+import numpy as np
+import pytest
+import torch
+
+from modnet.bank import ModuleBank
+from modnet.evaluate import (
+    FINETUNE_STARTS,
+    Scores,
+    _start_bank,
+    evaluation_env,
+    finetune,
+    rollout,
+    score,
+    zero_shot,
+)
+from modnet.gps.trainer import GPSConfig
+from modnet.report import final_positions_strip, plot_zero_shot, write_zero_shot_csv, zero_shot_table
+
+ROBOTS, TASKS = ["three_link", "four_link"], ["reach_red", "reach_black"]
+HELD_OUT = ("four_link", "reach_black")
+
+
+
+
+@pytest.fixture(scope="module")
+def bank():
+    return ModuleBank.build(ROBOTS, TASKS, seed=0)
+
+
+@pytest.fixture(scope="module")
+def env():
+    return evaluation_env(*HELD_OUT, horizon=12)
+
+
+def test_scores_mean_success_rate_and_student_t_interval():
+    scores = Scores([0.05, 0.2, 0.07, 0.4], success_distance=0.1)
+    assert scores.mean == pytest.approx(0.18) and scores.success_rate == 0.5
+    low, high = scores.ci95
+    half = 3.182446305284263 * np.std(scores.distance, ddof=1) / 2  # t(0.975, 3) * s / sqrt(4)
+    assert (low, high) == pytest.approx((0.18 - half, 0.18 + half))
+    assert Scores([0.3], 0.1).ci95 is None
+    assert Scores([0.3], 0.1).to_json() == {"distance": [0.3], "mean": 0.3, "ci95": None, "success_rate": 0.0}
+
+
+def test_zero_shot_scores_every_method_on_every_test_condition(bank, env):
+    result = zero_shot(bank, *HELD_OUT, env)
+    assert len(result.composed.distance) == len(result.random.distance) == 4
+    assert list(result.wrong_task_each) == ["reach_red"]
+    assert result.wrong_task == ("reach_red", result.wrong_task_each["reach_red"])
+    assert result.random.distance != result.composed.distance  # a different network
+    methods = result.to_json()
+    assert methods["wrong_task"]["task"] == "reach_red"
+    assert methods["wrong_task"]["distance"] == methods["wrong_task_each"]["reach_red"]["distance"]
+
+
+def test_evaluation_is_deterministic_uses_eval_mode_and_restores_the_bank_mode(bank, env):
+    bank.train()
+    first = score(bank, *HELD_OUT, env).distance
+    assert bank.training  # restored
+    second = score(bank, *HELD_OUT, env).distance
+    assert first == second  # mean actions, dropout off: same rollout twice
+    td, _ = rollout(bank, *HELD_OUT, env)
+    assert env.final_distance(td).tolist() == first
+
+
+def test_the_best_wrong_task_is_the_lowest_mean_distance():
+    bank = ModuleBank.build(
+        ["four_link"], ["reach_red", "reach_green", "reach_yellow", "reach_black"], seed=1
+    )
+    env = evaluation_env(*HELD_OUT, horizon=8)
+    result = zero_shot(bank, *HELD_OUT, env)
+    assert set(result.wrong_task_each) == {"reach_red", "reach_green", "reach_yellow"}
+    best = min(result.wrong_task_each, key=lambda t: np.mean(result.wrong_task_each[t].distance))
+    assert result.wrong_task[0] == best
+
+
+def test_wrong_task_modules_that_cannot_read_the_world_are_skipped_with_the_reason():
+    bank = ModuleBank.build(["four_link"], ["reach", "push", "drawer_vertical"], seed=0)
+    env = evaluation_env("four_link", "push", horizon=5)
+    result = zero_shot(bank, "four_link", "push", env)
+    assert list(result.wrong_task_each) == ["drawer_vertical"]  # 10-dim task state, like push
+    assert result.skipped == {"reach": "it reads a task/state of size 6, the held-out world has 10"}
+    assert result.to_json()["wrong_task_skipped"] == result.skipped
+
+
+def test_rollout_frames_hold_the_first_and_last_step_of_every_condition(bank, env):
+    _, frames = rollout(bank, *HELD_OUT, env, frames=(32, 40, 5))
+    assert frames.dtype == np.uint8 and frames.shape[1:] == (4, 32, 40, 3)
+    assert 5 <= frames.shape[0] <= 6 and frames[-1].std() > 0
+    assert final_positions_strip(frames).shape == (32, 4 * 40 + 3 * 4, 3)
+
+
+def test_report_table_csv_and_figure_from_results(bank, env, tmp_path):
+    results = {
+        "holdout": "four_link/reach_black",
+        "success_distance": 0.1,
+        "methods": zero_shot(bank, *HELD_OUT, env).to_json(),
+    }
+    table = zero_shot_table(results).splitlines()
+    assert table[1].split() == ["condition", "random", "network", "wrong", "task", "(reach_red)", "composed"]
+    assert len(table) == 2 + 4 + 2
+    rows = write_zero_shot_csv(results, tmp_path / "z.csv").read_text().splitlines()
+    assert rows[0] == "condition,random,wrong_task,wrong_task:reach_red,composed" and len(rows) == 7
+    plot_zero_shot(results, tmp_path / "z.png")
+    assert (tmp_path / "z.png").stat().st_size > 1000
+
+
+def test_finetuning_starts_set_up_the_held_out_world_as_described(tmp_path):
+    bank = ModuleBank.build(ROBOTS, TASKS, seed=7)  # stands for a trained bank: not seed 0's weights
+    bank.save(tmp_path / "bank")
+    saved = {name: bank.get("task", name).state_dict() for name in TASKS}
+
+    def same(module, state):
+        return all(torch.equal(v, state[k]) for k, v in module.state_dict().items())
+
+    composed = _start_bank(tmp_path / "bank", "composed", *HELD_OUT, "reach_red", seed=0)
+    assert same(composed.get("task", "reach_black"), saved["reach_black"])
+    wrong = _start_bank(tmp_path / "bank", "wrong_task", *HELD_OUT, "reach_red", seed=0)
+    assert same(wrong.get("task", "reach_black"), saved["reach_red"])
+    scratch = _start_bank(tmp_path / "bank", "scratch_shaping", *HELD_OUT, None, seed=0)
+    assert not same(scratch.get("task", "reach_black"), saved["reach_black"])
+
+
+def test_finetune_gives_one_curve_per_start_from_before_training(bank, env, tmp_path):
+    bank.save(tmp_path / "bank")
+    config = GPSConfig(horizon=12, samples_per_condition=2, sgd_steps=10, initial_sgd_steps=10)
+    curves = finetune(tmp_path / "bank", *HELD_OUT, env, config, iterations=1, wrong_task="reach_red")
+    assert list(curves) == list(FINETUNE_STARTS)
+    assert all(len(c) == 2 and np.isfinite(c).all() for c in curves.values())
+    assert curves["composed"][0] == pytest.approx(score(bank, *HELD_OUT, env).mean)  # entry 0: the saved bank
+    assert "wrong_task" not in finetune(
+        tmp_path / "bank", *HELD_OUT, env, config, iterations=0, wrong_task=None
+    )

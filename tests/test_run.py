@@ -1,0 +1,253 @@
+"""run.py end to end on the tiny universe: outputs, resuming a killed run, and configs refused up front."""
+
+import importlib.util
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
+
+from modnet.bank import ModuleBank
+from modnet.checkpoint import CheckpointError, load_checkpoint
+from modnet.config import ConfigError, LoggerConfig, RunConfig, register_configs, validate
+from modnet.loggers import RunLogger
+
+ROOT = Path(__file__).resolve().parents[1]
+ITERATIONS = 4  # GPS iterations of the tiny runs here
+ENV = {
+    **os.environ,
+    "PYTHONUNBUFFERED": "1",
+    "WANDB_MODE": "offline",
+    "WANDB_SILENT": "true",
+    "HYDRA_FULL_ERROR": "0",
+}
+
+
+def load_run_module():
+    """run.py (the Hydra entry point at the repository root) imported as a module."""
+    spec = importlib.util.spec_from_file_location("modnet_run", ROOT / "run.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def composed_run(*overrides: str) -> RunConfig:
+    """The typed config ``python run.py <overrides>`` would run with."""
+    register_configs()
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base=None):
+        return OmegaConf.to_object(compose("config", overrides=list(overrides)))
+
+
+def run_py(*overrides: str, timeout: float = 300, **popen) -> subprocess.CompletedProcess:
+    """``python run.py <overrides>`` from the repository root; output captured as text."""
+    return subprocess.run(
+        [sys.executable, str(ROOT / "run.py"), *overrides],
+        cwd=ROOT,
+        env=ENV,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        **popen,
+    )
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory):
+    """One whole tiny job: train, save, zero-shot (+ 3 random conditions), fine-tune, report."""
+    run_dir = tmp_path_factory.mktemp("tiny_run")
+    start = time.perf_counter()
+    done = run_py(
+        "universe=tiny",
+        "logger=csv",
+        f"gps.iterations={ITERATIONS}",
+        "finetune=true",
+        "eval.random_conditions=3",
+        f"hydra.run.dir={run_dir}",
+    )
+    return run_dir, done, time.perf_counter() - start
+
+
+def test_tiny_pipeline_end_to_end_in_under_two_minutes(tiny_run):
+    run_dir, done, seconds = tiny_run
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert seconds < 120
+    results = json.loads((run_dir / "results.json").read_text())
+    assert results["universe"] == "tiny" and results["holdout"] == "four_link/reach_black"
+    assert results["success_distance"] == 0.1 and results["iterations"] == ITERATIONS
+    methods = results["methods"]
+    assert set(methods) >= {"composed", "random", "wrong_task", "wrong_task_each"}
+    for scores in (
+        methods["composed"],
+        methods["random"],
+        methods["wrong_task"],
+        methods["wrong_task_each"]["reach_red"],
+    ):
+        assert len(scores["distance"]) == 4 and 0 <= scores["success_rate"] <= 1
+    assert methods["wrong_task"]["task"] == "reach_red"
+    assert len(results["random_conditions"]["methods"]["composed"]["distance"]) == 3
+    assert set(results["finetune"]) == {"composed", "wrong_task", "scratch_shaping", "scratch_no_shaping"}
+    assert all(len(curve) == 2 for curve in results["finetune"].values())  # before + 1 iteration
+    for name in [
+        "learning_curves.png",
+        "zero_shot.png",
+        "final_positions.png",
+        "final_positions.gif",
+        "finetune.png",
+        "zero_shot.csv",
+        "history.json",
+        "checkpoint.pt",
+        "bank/manifest.json",
+    ]:
+        assert (run_dir / name).stat().st_size > 0, name
+    assert "composed" in done.stdout and "Zero-shot four_link/reach_black" in done.stdout
+    assert list((run_dir / "tiny-four_link-reach_black" / "scalars" / "train").rglob("distance.csv"))
+
+
+def test_the_saved_bank_knows_what_each_module_was_trained_on(tiny_run):
+    run_dir, done, _ = tiny_run
+    assert done.returncode == 0
+    bank = ModuleBank.load(run_dir / "bank")
+    assert ("four_link", "reach_black") not in bank.trained_on("robot", "four_link")
+    assert bank.trained_on("task", "reach_black") == {("three_link", "reach_black")}
+    history = json.loads((run_dir / "history.json").read_text())
+    assert [h["iteration"] for h in history] == [1, 2, 3, 4]
+    assert set(history[0]["worlds"]) == {
+        "three_link/reach_red",
+        "three_link/reach_black",
+        "four_link/reach_red",
+    }
+
+
+def test_a_killed_run_resumes_from_its_last_checkpoint_and_loses_nothing(tmp_path, tiny_run):
+    overrides = ["universe=tiny", "logger=none", f"gps.iterations={ITERATIONS}", f"hydra.run.dir={tmp_path}"]
+    checkpoint = tmp_path / "checkpoint.pt"
+    job = subprocess.Popen(
+        [sys.executable, str(ROOT / "run.py"), *overrides],
+        cwd=ROOT,
+        env=ENV,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    try:
+        deadline = time.monotonic() + 120
+        while not checkpoint.exists() and job.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.05)
+    finally:
+        job.kill()
+        job.wait()
+    assert checkpoint.exists() and not (tmp_path / "results.json").exists(), "killed too late"
+    before = load_checkpoint(checkpoint)
+    assert 1 <= before.iteration < ITERATIONS
+
+    resumed = run_py(*overrides, "resume=true")
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert f"after iteration {before.iteration}" in resumed.stdout
+    history = json.loads((tmp_path / "history.json").read_text())
+    assert [h["iteration"] for h in history] == [1, 2, 3, 4]  # every iteration exactly once
+    assert [h["worlds"] for h in history[: before.iteration]] == before.trainer["history"]
+    assert load_checkpoint(checkpoint).iteration == ITERATIONS
+    # the same numbers as the run that was never killed, to the last bit
+    assert history == json.loads((tiny_run[0] / "history.json").read_text())
+    resumed_results = json.loads((tmp_path / "results.json").read_text())
+    assert resumed_results["methods"] == json.loads((tiny_run[0] / "results.json").read_text())["methods"]
+
+
+def test_an_existing_run_is_never_overwritten_nor_resumed_under_another_config(tmp_path, tiny_run):
+    run_dir, done, _ = tiny_run
+    assert done.returncode == 0
+    run = load_run_module()
+    config = composed_run("universe=tiny")
+    universe, split = validate(config)
+    identity = run.run_identity(config, universe, split)
+    checkpoint = tmp_path / "checkpoint.pt"
+    checkpoint.write_bytes((run_dir / "checkpoint.pt").read_bytes())
+    with pytest.raises(CheckpointError, match="already holds a run: pass resume=true to continue it"):
+        run.resume_point(config, checkpoint, identity)
+    config.resume = True
+    assert run.resume_point(config, checkpoint, identity).iteration == ITERATIONS
+    changed = composed_run("universe=tiny", "gps.sgd_steps=7", "resume=true")
+    with pytest.raises(
+        CheckpointError,
+        match="belongs to a different run; gps.sgd_steps: 50 in the checkpoint, 7 in this run$",
+    ):
+        run.resume_point(changed, checkpoint, run.run_identity(changed, universe, split))
+    longer = composed_run("universe=tiny", "gps.iterations=5", "resume=true")  # training may go on
+    assert run.resume_point(longer, checkpoint, run.run_identity(longer, universe, split)).iteration == 4
+
+
+def test_a_corrupt_checkpoint_stops_the_run_with_one_message_and_stays(tmp_path):
+    checkpoint = tmp_path / "checkpoint.pt"
+    checkpoint.write_bytes(b"half a checkpoint")
+    start = time.perf_counter()
+    corrupt = run_py("universe=tiny", "logger=none", "resume=true", f"hydra.run.dir={tmp_path}")
+    assert corrupt.returncode != 0
+    assert f"corrupt checkpoint {checkpoint}" in corrupt.stderr and "Traceback" not in corrupt.stderr
+    assert checkpoint.read_bytes() == b"half a checkpoint"
+    assert time.perf_counter() - start < 30
+
+
+@pytest.mark.parametrize(
+    "overrides, message",
+    [
+        (["universe=colour"], "Could not find 'universe/colour'"),
+        (["universe=tiny", "holdout=five_link/reach_red"], "'five_link/reach_red' is not in universe 'tiny'"),
+        (["universe=tiny", "holdout=all"], "holdout=all is a leave-one-world-out sweep"),
+    ],
+)
+def test_bad_configs_fail_in_seconds_with_one_clear_message(tmp_path, overrides, message):
+    start = time.perf_counter()
+    done = run_py(*overrides, "logger=none", f"hydra.run.dir={tmp_path}")
+    assert done.returncode != 0
+    assert message in done.stderr and "Traceback" not in done.stderr
+    assert time.perf_counter() - start < 30
+    assert not (tmp_path / "checkpoint.pt").exists()
+
+
+def test_tensorboard_logger_starts_or_says_what_is_missing(tmp_path):
+    try:
+        import tensorboard  # noqa: F401
+    except ImportError:  # not a modnet dependency: the run must refuse before training
+        with pytest.raises(ConfigError, match="logger=tensorboard cannot start: .*pip install tensorboard"):
+            RunLogger.open(LoggerConfig(backend="tensorboard"), tmp_path, "tiny")
+    else:
+        with RunLogger.open(LoggerConfig(backend="tensorboard"), tmp_path, "tiny") as log:
+            log.iteration(1, {"three_link/reach_red": {"distance": 0.5}})
+
+
+def test_wandb_runs_offline_inside_the_run_directory_and_closes_for_the_next_job(tmp_path, monkeypatch):
+    """Hydra's basic launcher runs a sweep's jobs in one process: each job's wandb run must end."""
+    wandb = pytest.importorskip("wandb")
+    monkeypatch.delenv("WANDB_MODE", raising=False)  # offline must come from the config itself
+    for job in ("0", "1"):
+        with RunLogger.open(LoggerConfig(), tmp_path / job, f"tiny-job{job}", "tiny") as log:
+            assert wandb.run is not None and wandb.run.settings.mode == "offline"
+            log.iteration(1, {"three_link/reach_red": {"distance": 0.5, "sampled_cost": 3.0}})
+        assert wandb.run is None
+        assert len(list((tmp_path / job / "wandb").glob("offline-run-*/run-*.wandb"))) == 1
+
+
+@pytest.mark.slow
+def test_holdout_all_sweeps_every_world_in_one_process_with_wandb(tmp_path):
+    done = run_py("-m", "universe=tiny", "holdout=all", "gps.iterations=1", f"hydra.sweep.dir={tmp_path}")
+    assert done.returncode == 0, done.stderr[-3000:]
+    holdouts = {json.loads(r.read_text())["holdout"] for r in tmp_path.rglob("results.json")}
+    assert holdouts == {
+        "three_link/reach_red",
+        "three_link/reach_black",
+        "four_link/reach_red",
+        "four_link/reach_black",
+    }
+    assert len(list(tmp_path.glob("*/wandb/offline-run-*"))) == 4
+
+
+def test_checkpoints_hold_plain_data_only(tiny_run):
+    run_dir, done, _ = tiny_run
+    assert done.returncode == 0
+    payload = torch.load(run_dir / "checkpoint.pt", weights_only=True)  # would raise on any object
+    assert payload["format"] == "modnet.checkpoint/1" and payload["trainer"]["iteration"] == ITERATIONS
