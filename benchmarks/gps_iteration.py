@@ -49,7 +49,7 @@ def raw_seconds(trainer: GPSTrainer) -> float:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--iterations", type=int, default=3)
-    parser.add_argument("--algo", default="mdgps", choices=["mdgps", "badmm"])
+    parser.add_argument("--algo", default=GPSConfig.algo, choices=["mdgps", "badmm"])
     args = parser.parse_args()
     torch.set_num_threads(1)
     worlds = [(r, t) for r in ROBOTS for t in TASKS if (r, t) != HOLDOUT]

@@ -17,6 +17,7 @@ import time
 import torch
 
 from modnet.bank import ModuleBank
+from modnet.evaluate import evaluation_env, score
 from modnet.gps.trainer import GPSConfig, GPSTrainer
 from modnet.worlds import task_spec
 
@@ -25,7 +26,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--robot", default="three_link")
     parser.add_argument("--task", default="reach")
-    parser.add_argument("--algo", default="badmm", choices=["mdgps", "badmm"])
+    parser.add_argument("--algo", default=GPSConfig.algo, choices=["mdgps", "badmm"])
     parser.add_argument("--iterations", type=int, default=12)
     parser.add_argument("--samples", type=int, default=5, help="samples per condition")
     parser.add_argument("--conditions", type=int, default=16, help="training conditions")
@@ -42,7 +43,7 @@ def main() -> None:
     for i in range(args.iterations):
         diag = trainer.step()[f"{args.robot}/{args.task}"]
         print(f"iteration {i}: " + " ".join(f"{k}={v:.3g}" for k, v in diag.items()), flush=True)
-    distance = trainer.evaluate_policy(args.robot, args.task, "test")
+    distance = score(bank, args.robot, args.task, evaluation_env(args.robot, args.task)).distance
     wall = time.perf_counter() - start
     samples = args.iterations * sum(s.sampler.env.batch_size[0] for s in trainer.states.values())
     print(
