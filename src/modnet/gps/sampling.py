@@ -2,9 +2,10 @@
 
 A :class:`WorldSampler` owns one batched env with ``M * N`` copies (copy ``i`` starts from
 condition ``i % M``), rolls out any TorchRL policy for the horizon, and appends the
-trajectories to a :class:`~torchrl.data.ReplayBuffer` over a ``LazyTensorStorage`` (the
-dynamics prior reads the last few iterations from it).  :class:`Samples` holds one
-iteration's trajectories in the ``[M, N, T, ...]`` layout the GPS math uses.
+trajectories (without pixels) to a :class:`~torchrl.data.ReplayBuffer` over a
+``LazyTensorStorage`` that keeps the last ``buffer_iterations`` iterations for inspection.
+:class:`Samples` holds one iteration's trajectories in the ``[M, N, T, ...]`` layout the GPS
+math uses.
 
 Examples:
     >>> from modnet.gps.sampling import WorldSampler
@@ -42,10 +43,6 @@ class Samples:
     U: torch.Tensor  # [M, N, T, dU] float64
     cost: torch.Tensor  # [M, N, T] float64
     obs: TensorDictBase  # [M, N, T]
-
-    @property
-    def num_samples(self) -> int:
-        return self.X.shape[0] * self.X.shape[1]
 
 
 def to_condition_major(td: TensorDictBase, num_conditions: int) -> TensorDictBase:
@@ -131,9 +128,3 @@ class WorldSampler:
             cost=-td["next", "reward"].squeeze(-1).to(torch.float64),
             obs=td.select(*STATE_KEYS, ("task", "pixels"), "condition", "step_count", strict=False),
         )
-
-    def buffered_states(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """States and applied actions of every stored trajectory, ``[S, T, dX]`` and ``[S, T, dU]``."""
-        stored = self.buffer.storage[: len(self.buffer)]
-        U = stored["action"].to(torch.float64).clamp(-TORQUE_LIMIT, TORQUE_LIMIT)
-        return state_of(stored), U

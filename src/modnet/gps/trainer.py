@@ -137,11 +137,7 @@ def world_key(robot: str, task: str) -> str:
 
 def frozen(gains: LinearGaussianGains) -> LinearGaussianGains:
     """A copy that later in-place updates of a controller's buffers cannot change."""
-    return LinearGaussianGains(*(t.detach().clone() for t in astuple_shallow(gains)))
-
-
-def astuple_shallow(obj) -> tuple:
-    return tuple(getattr(obj, f.name) for f in fields(obj))
+    return LinearGaussianGains(**{name: t.detach().clone() for name, t in _fields_dict(gains).items()})
 
 
 class GPSTrainer:
