@@ -35,6 +35,7 @@ from modnet.gps.badmm import BADMMConfig
 from modnet.gps.dynamics import DynamicsPriorConfig
 from modnet.gps.trainer import GPSConfig
 from modnet.universes import Split, Universe, get_universe
+from modnet.worlds import CONDITION_SETS, NUM_FIXED_CONDITIONS
 
 __all__ = [
     "BankSchema",
@@ -239,6 +240,13 @@ class RunConfig:
         unknown = sorted(set(self.eval.finetune_starts) - set(FINETUNE_STARTS))
         if unknown:
             raise ConfigError(f"eval.finetune_starts: unknown {unknown}; valid: {', '.join(FINETUNE_STARTS)}")
+        if self.eval.conditions not in CONDITION_SETS:
+            raise ConfigError(
+                f"eval.conditions must be one of {', '.join(CONDITION_SETS)}, got {self.eval.conditions!r}"
+            )
+        least = 1 if self.eval.conditions == "random" else NUM_FIXED_CONDITIONS
+        if self.eval.num_conditions is not None and self.eval.num_conditions < least:
+            raise ConfigError(f"eval.num_conditions must be at least {least}, got {self.eval.num_conditions}")
         if not (1 <= self.eval.frame_height <= 512 and 1 <= self.eval.frame_width <= 640):
             raise ConfigError("eval.frame_height/frame_width must be at most 512 x 640 (the scene's buffer)")
 

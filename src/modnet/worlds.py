@@ -137,12 +137,15 @@ class World:
         stream = _SPLIT_STREAM[split]
         task_rng = np.random.default_rng([seed, stream, 0])
         arm_rng = np.random.default_rng([seed, stream, 1])
-        return np.stack(
+        params = np.stack(
             [
                 np.concatenate([self.robot.sample_qpos(arm_rng), self.task.sample_params(task_rng)])
                 for _ in range(n)
             ]
         )
+        if params.shape[-1] != self.param_dim:  # a task definition out of step with its layout
+            raise ValueError(f"{self.name}: conditions of size {params.shape[-1]}, declared {self.param_dim}")
+        return params
 
     def reset_data(self, data: mujoco.MjData, params: np.ndarray) -> None:
         """Put ``data`` into the initial condition ``params`` (arm at rest) and run the forward pass."""

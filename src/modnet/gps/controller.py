@@ -32,6 +32,7 @@ from tensordict.utils import NestedKey
 from torch import nn
 
 from modnet.gps.errors import NumericalError, check_finite
+from modnet.gps.linalg import symmetrize
 
 if TYPE_CHECKING:
     from modnet.gps.cost import QuadraticCost
@@ -65,7 +66,7 @@ class LinearGaussianGains:
         cls, K: torch.Tensor, k: torch.Tensor, cov: torch.Tensor
     ) -> LinearGaussianGains:
         """Gains from a covariance; its Cholesky factor and inverse are computed here."""
-        cov = _sym(cov.to(torch.float64))
+        cov = symmetrize(cov.to(torch.float64))
         chol, info = torch.linalg.cholesky_ex(cov)
         if bool((info > 0).any()):
             bad = int((info > 0).reshape(cov.shape[0], -1).any(-1).nonzero()[0, 0])
@@ -98,10 +99,6 @@ class LinearGaussianGains:
         """``K_t x + k_t`` for trajectories ``X [M, N, T, dX]`` -> ``[M, N, T, dU]``."""
         X = X.to(torch.float64)
         return torch.einsum("mtux,mntx->mntu", self.K, X) + self.k[:, None]
-
-
-def _sym(a: torch.Tensor) -> torch.Tensor:
-    return 0.5 * (a + a.transpose(-1, -2))
 
 
 class _LinearGaussianPolicy(nn.Module):

@@ -30,6 +30,7 @@ import torch
 
 from modnet.gps.controller import LinearGaussianGains
 from modnet.gps.errors import NumericalError, check_finite
+from modnet.gps.linalg import symmetrize
 
 __all__ = [
     "GMM",
@@ -46,10 +47,6 @@ __all__ = [
 
 _f64 = torch.float64
 _BLOCK_ELEMENTS = 1 << 19  # points x clusters x dims per block in GMM density evaluation
-
-
-def _sym(a: torch.Tensor) -> torch.Tensor:
-    return 0.5 * (a + a.transpose(-1, -2))
 
 
 def _eye_like(a: torch.Tensor, n: int) -> torch.Tensor:
@@ -135,7 +132,7 @@ def conditional_gaussian_fit(
     sigma_in_out = sigma[..., :i, i:]
     W = torch.linalg.solve_ex(sigma_in, sigma_in_out)[0].transpose(-1, -2)  # NaN in -> NaN out
     w = mean[..., i:] - (W @ mean[..., :i].unsqueeze(-1)).squeeze(-1)
-    S = _sym(sigma[..., i:, i:] - W @ sigma_in_out)  # Sigma_oo - W Sigma_ii W'
+    S = symmetrize(sigma[..., i:, i:] - W @ sigma_in_out)  # Sigma_oo - W Sigma_ii W'
     return W, w, S
 
 
@@ -158,7 +155,7 @@ def estimate_initial_state(
         x0sigma = (N * x0sigma + Phi + (N * m / (N + m)) * (shift @ shift.transpose(-1, -2))) / (
             N + n0
         )
-    return x0mu, _sym(x0sigma)
+    return x0mu, symmetrize(x0sigma)
 
 
 def _transition_points(X: torch.Tensor, U: torch.Tensor) -> torch.Tensor:
@@ -301,7 +298,7 @@ class GMM:
     def _set_covariances(self, sigma: torch.Tensor) -> None:
         """Store ``sigma [K, D, D]`` and its factorisation; a covariance that rounding made
         indefinite gets jitter (10x the regulariser, growing tenfold) until it factorises."""
-        sigma = _sym(sigma)
+        sigma = symmetrize(sigma)
         D = sigma.shape[-1]
         eye = _eye_like(sigma, D)
         chol, info = torch.linalg.cholesky_ex(sigma)
@@ -386,7 +383,7 @@ class GMM:
         Phi = torch.einsum("...k,kde->...de", weights, second) - shift[..., :, None] * shift[
             ..., None, :
         ]
-        return mu0, _sym(Phi)
+        return mu0, symmetrize(Phi)
 
     def inference(self, points: torch.Tensor) -> NIWPrior:
         """NIW prior for the set ``points [*B, N, D]``: mixture moments under the averaged
@@ -403,7 +400,11 @@ class GMM:
 @dataclass
 class DynamicsPriorConfig:
     """Options of the GMM priors (defaults from the GPS code; MuJoCo examples used
-    ``max_clusters=20, min_samples_per_cluster=40``)."""
+    ``max_clusters=20, min_samples_per_cluster=40``).
+
+    ``max_trajectories`` is the buffer of one prior; GPS keeps 20 per condition, so a
+    prior shared by M conditions is given ``20 * M`` (see :class:`modnet.gps.trainer.GPSTrainer`).
+    """
 
     max_clusters: int = 50
     min_samples_per_cluster: int = 20

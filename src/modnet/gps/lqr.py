@@ -45,6 +45,7 @@ from modnet.gps.controller import LinearGaussianGains
 from modnet.gps.cost import QuadraticCost
 from modnet.gps.dynamics import LinearGaussianDynamics
 from modnet.gps.errors import NumericalError, check_finite
+from modnet.gps.linalg import symmetrize
 
 __all__ = [
     "BackwardResult",
@@ -127,10 +128,6 @@ class LQRResult:
     marginals: StateActionMarginals
     converged: torch.Tensor
     iterations: int
-
-
-def _sym(a: torch.Tensor) -> torch.Tensor:
-    return 0.5 * (a + a.transpose(-1, -2))
 
 
 def _as_condition_tensor(value: float | torch.Tensor, M: int) -> torch.Tensor:
@@ -256,7 +253,7 @@ def _riccati(
     kK = -torch.stack(solutions[::-1], dim=1)
     failed = (torch.stack(infos, dim=1) > 0).any(dim=1)
     Q_uu = torch.stack(quu[::-1], dim=1)
-    return kK[..., 1:], kK[..., 0], _sym(Q_uu), torch.stack(chol_quu[::-1], dim=1), failed
+    return kK[..., 1:], kK[..., 0], symmetrize(Q_uu), torch.stack(chol_quu[::-1], dim=1), failed
 
 
 def lqr_backward(
@@ -337,7 +334,7 @@ def _backward(
                 f"({float(eta_t[bad]):.3g} >= max_eta {max_eta:.3g})",
                 world=world, condition=bad, iteration=iteration,
             )
-    cov = _sym(torch.cholesky_inverse(L))
+    cov = symmetrize(torch.cholesky_inverse(L))
     chol, info = torch.linalg.cholesky_ex(cov)
     check_finite("LQR K", K, world=world, iteration=iteration)
     check_finite("LQR k", k, world=world, iteration=iteration)
@@ -383,9 +380,9 @@ def lqr_forward(gains: LinearGaussianGains, dynamics: LinearGaussianDynamics) ->
         mus.append(mu_x)
         sigmas.append(sigma_x)
     mu_x = torch.stack(mus, dim=1)  # [M, T, dX, 1]
-    sigma_x = _sym(torch.stack(sigmas, dim=1))
+    sigma_x = symmetrize(torch.stack(sigmas, dim=1))
     mu = (lift @ mu_x).squeeze(-1) + k_pad
-    sigma = _sym(lift @ sigma_x @ lift.transpose(-1, -2) + cov_pad)
+    sigma = symmetrize(lift @ sigma_x @ lift.transpose(-1, -2) + cov_pad)
     return StateActionMarginals(mu=mu, sigma=sigma)
 
 

@@ -2,8 +2,8 @@
 
 A :class:`WorldSampler` owns one batched env with ``M * N`` copies (copy ``i`` starts from
 condition ``i % M``), rolls out any TorchRL policy for the horizon, and appends the
-trajectories (without pixels) to a :class:`~torchrl.data.ReplayBuffer` over a
-``LazyTensorStorage`` that keeps the last ``buffer_iterations`` iterations for inspection.
+trajectories (states, actions, rewards; no pixels) in a :class:`~torchrl.data.ReplayBuffer`
+over a ``LazyTensorStorage`` holding the latest iteration.
 :class:`Samples` holds one iteration's trajectories in the ``[M, N, T, ...]`` layout the GPS
 math uses.
 
@@ -35,13 +35,14 @@ class Samples:
     """One iteration's trajectories of one world, laid out ``[M, N, T, ...]``.
 
     ``X`` are the states each action was taken in, ``U`` the actions as applied (clipped
-    to the torque limit), ``cost`` the per-step cost of the reached state; ``obs`` the
-    policy inputs (states, and pixels when the env renders) in the same layout.
+    to the torque limit), ``distance`` each trajectory's final distance (the paper's
+    metric, :meth:`~modnet.envs.WorldEnv.final_distance`); ``obs`` the policy inputs
+    (states, and pixels when the env renders) in the same layout.
     """
 
     X: torch.Tensor  # [M, N, T, dX] float64
     U: torch.Tensor  # [M, N, T, dU] float64
-    cost: torch.Tensor  # [M, N, T] float64
+    distance: torch.Tensor  # [M, N] float64
     obs: TensorDictBase  # [M, N, T]
 
 
@@ -65,9 +66,9 @@ class WorldSampler:
         samples_per_condition: N.
         horizon: T (the task's horizon when None).
         pixels: render ``("task", "pixels")`` (only when a pixel policy needs them).
-        shaping: include the task's shaping term in the cost.
-        buffer_iterations: how many iterations of trajectories the replay buffer keeps.
+        shaping: include the task's shaping term in the env's reward.
         seed: the condition sets' seed.
+        num_conditions: the size of the condition set (M; the set's 4 when None).
     """
 
     def __init__(
@@ -80,7 +81,6 @@ class WorldSampler:
         horizon: int | None = None,
         pixels: bool = False,
         shaping: bool = True,
-        buffer_iterations: int = 4,
         seed: int = 0,
         num_conditions: int | None = None,
     ) -> None:
@@ -102,10 +102,7 @@ class WorldSampler:
         )
         self.world = self.env.world
         self.horizon = self.env.horizon
-        self.shaping = shaping
-        self.buffer = ReplayBuffer(
-            storage=LazyTensorStorage(buffer_iterations * self.env.batch_size[0]), batch_size=1
-        )
+        self.buffer = ReplayBuffer(storage=LazyTensorStorage(self.env.batch_size[0]), batch_size=1)
 
     @property
     def name(self) -> str:
@@ -113,18 +110,22 @@ class WorldSampler:
 
     @torch.no_grad()
     def rollout(self, policy: TensorDictModuleBase | None = None) -> TensorDictBase:
-        """One ``[M * N, T]`` batch of trajectories, stored in the replay buffer."""
+        """One ``[M * N, T]`` batch of trajectories; the replay buffer then holds exactly these."""
         td = self.env.rollout(self.horizon, policy, break_when_any_done=False)
+        self.buffer.empty()
         self.buffer.extend(td.exclude(("task", "pixels"), ("next", "task", "pixels")))
         return td
 
     def sample(self, policy: TensorDictModuleBase | None = None) -> Samples:
         """Roll ``policy`` out (random actions when None) and return the iteration's samples."""
-        td = to_condition_major(self.rollout(policy), self.num_conditions)
+        rollout = self.rollout(policy)
+        N, M = self.samples_per_condition, self.num_conditions
+        distance = self.env.final_distance(rollout).reshape(N, M).T
+        td = to_condition_major(rollout, M)
         U = td["action"].to(torch.float64).clamp(-TORQUE_LIMIT, TORQUE_LIMIT)
         return Samples(
             X=state_of(td),
             U=U,
-            cost=-td["next", "reward"].squeeze(-1).to(torch.float64),
+            distance=distance,
             obs=td.select(*STATE_KEYS, ("task", "pixels"), "condition", "step_count", strict=False),
         )

@@ -29,7 +29,7 @@ import contextlib
 import time
 from collections import defaultdict
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 from typing import Literal
 
 import torch
@@ -53,6 +53,7 @@ from modnet.gps.loss import PolicyRegressionLoss
 from modnet.gps.lqr import LQRConfig, adapt_step_mult, kl_divergence, laplace_cost, lqr_forward
 from modnet.gps.lqr import solve_kl_constrained_lqr as c_step
 from modnet.gps.sampling import STATE_KEYS, Samples, WorldSampler, state_of
+from modnet.worlds import CONDITION_SETS, NUM_FIXED_CONDITIONS
 
 PHASES = ("sampling", "cost", "dynamics", "lqr", "s_step")
 
@@ -91,6 +92,22 @@ class GPSConfig:
     #: controllers from their linearisation (instead of fitting the policy to hold-position ones)
     init_from_policy: bool = False
     seed: int = 0
+
+    def __post_init__(self) -> None:
+        for name in ("samples_per_condition", "sgd_steps", "initial_sgd_steps", "batch_per_world"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"gps.{name} must be at least 1, got {getattr(self, name)}")
+        if self.horizon is not None and self.horizon < 1:
+            raise ValueError(f"gps.horizon must be at least 1 (or null for the task's), got {self.horizon}")
+        if self.conditions not in CONDITION_SETS:
+            raise ValueError(
+                f"gps.conditions must be one of {', '.join(CONDITION_SETS)}, got {self.conditions!r}"
+            )
+        if self.num_conditions is not None and self.num_conditions < NUM_FIXED_CONDITIONS:
+            raise ValueError(
+                f"gps.num_conditions must be at least {NUM_FIXED_CONDITIONS} (or null), "
+                f"got {self.num_conditions}"
+            )
 
     def lqr(self) -> LQRConfig:
         return LQRConfig(
@@ -131,10 +148,6 @@ class WorldState:
     diagnostics: dict[str, float] = field(default_factory=dict)
 
 
-def world_key(robot: str, task: str) -> str:
-    return f"{robot}/{task}"
-
-
 def frozen(gains: LinearGaussianGains) -> LinearGaussianGains:
     """A copy that later in-place updates of a controller's buffers cannot change."""
     return LinearGaussianGains(**{name: t.detach().clone() for name, t in _fields_dict(gains).items()})
@@ -170,7 +183,7 @@ class GPSTrainer:
         self.pixels = pixels
         self.iteration = 0
         self.timings: dict[str, float] = defaultdict(float)
-        self.states = {world_key(*w): self._init_world(*w) for w in worlds}
+        self.states = {state.name: state for state in map(lambda w: self._init_world(*w), worlds)}
         self.loss = PolicyRegressionLoss(bank)
         self.optimizer = torch.optim.Adam(bank.parameters(), lr=config.lr, weight_decay=config.weight_decay)
         self.history: list[dict[str, dict[str, float]]] = []
@@ -209,12 +222,14 @@ class GPSTrainer:
         if c.algo == "badmm":
             duals = Multipliers.zeros(M, T, sampler.world.state_dim, n, c.badmm.initial_policy_weight)
         generator = torch.Generator().manual_seed(c.seed)
+        # one prior per world, shared by its M conditions: GPS's buffer is per condition
+        prior = replace(c.dynamics_prior, max_trajectories=c.dynamics_prior.max_trajectories * M)
         return WorldState(
             name=sampler.name,
             sampler=sampler,
             controller=controller,
-            dynamics_prior=DynamicsPriorGMM(c.dynamics_prior, generator),
-            policy_prior=PolicyPriorGMM(c.dynamics_prior, generator),
+            dynamics_prior=DynamicsPriorGMM(prior, generator),
+            policy_prior=PolicyPriorGMM(prior, generator),
             eta=torch.ones(M, dtype=torch.float64),
             step_mult=torch.ones(M, dtype=torch.float64),
             duals=duals,
@@ -275,10 +290,9 @@ class GPSTrainer:
         state.previous = state.current
         state.current = Linearised(frozen(state.controller.gains), dynamics, cost)
         state.samples = samples
-        distance = world.task.distance(samples.obs["task", "state"].to(torch.float64))[..., -5:].mean(-1)
         state.diagnostics = {
             "sampled_cost": float(sampled.mean()),
-            "distance": float(distance.mean()),
+            "distance": float(samples.distance.mean()),
         }
 
     # --- the policy around the samples ----------------------------------------------------------
@@ -402,7 +416,9 @@ class GPSTrainer:
         weights = weights * weights.numel() / weights.sum()  # mean 1 ...
         median = weights[weights > 1e-2].median()
         weights = weights.clamp_max(2 * median) / median  # ... at most twice the robust median
-        data = state.samples.obs.select(*STATE_KEYS, ("task", "pixels"), strict=False).clone()
+        data = state.samples.obs.select(
+            *STATE_KEYS, ("task", "pixels"), strict=False
+        )  # a new TD, shared leaves
         data["target_action"] = target.to(torch.float32)
         data["precision"] = precision.to(torch.float32)
         data["weight"] = weights.to(torch.float32)
