@@ -5,7 +5,7 @@ guided policy search, then compose the held-out world's modules zero-shot and co
 with a random network and the wrong task module, as in the paper's tables.
 
     python run.py                                        # color_reach_state, four_link/reach_black held out
-    python run.py universe=tiny logger=csv               # seconds
+    python run.py universe=tiny logger=csv               # about 15 seconds
     python run.py holdout=three_link/reach_green finetune=true
     python run.py -m holdout=all hydra/launcher=joblib   # leave-one-world-out sweep, in parallel
     python -m modnet.aggregate multirun/<universe>/<date>   # the sweep's robot x task heatmap

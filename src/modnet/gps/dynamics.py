@@ -402,8 +402,9 @@ class DynamicsPriorConfig:
     """Options of the GMM priors (defaults from the GPS code; MuJoCo examples used
     ``max_clusters=20, min_samples_per_cluster=40``).
 
-    ``max_trajectories`` is the buffer of one prior; GPS keeps 20 per condition, so a
-    prior shared by M conditions is given ``20 * M`` (see :class:`modnet.gps.trainer.GPSTrainer`).
+    ``max_trajectories`` is the buffer of one prior (the latest ones); a prior shared by
+    several conditions should be given trajectories interleaved across conditions so that
+    the buffer spans all of them (the trainer passes them sample-major).
     """
 
     max_clusters: int = 50

@@ -29,7 +29,7 @@ import contextlib
 import time
 from collections import defaultdict
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, fields
 from typing import Literal
 
 import torch
@@ -222,8 +222,7 @@ class GPSTrainer:
         if c.algo == "badmm":
             duals = Multipliers.zeros(M, T, sampler.world.state_dim, n, c.badmm.initial_policy_weight)
         generator = torch.Generator().manual_seed(c.seed)
-        # one prior per world, shared by its M conditions: GPS's buffer is per condition
-        prior = replace(c.dynamics_prior, max_trajectories=c.dynamics_prior.max_trajectories * M)
+        prior = c.dynamics_prior
         return WorldState(
             name=sampler.name,
             sampler=sampler,
@@ -276,6 +275,9 @@ class GPSTrainer:
             self.bank.eval()  # no dropout when a composed policy acts
             samples = state.sampler.sample(policy or state.controller)
             self.bank.train()
+        for name, value in (("sampled states", samples.X), ("sampled actions", samples.U)):
+            # condition-major [M, ...], so the error names the condition
+            check_finite(name, value, world=state.name, iteration=self.iteration)
         with self._timed("cost"):
             weights = time_weights(state.sampler.horizon, c.cost_ramp, c.final_cost_multiplier)
             cost = expand_cost(lambda x, u: world.state_cost(x, u, c.shaping), samples.X, samples.U, weights)
@@ -283,7 +285,13 @@ class GPSTrainer:
             with torch.no_grad():
                 sampled = (world.state_cost(samples.X, samples.U, c.shaping) * weights).sum(-1)
         with self._timed("dynamics"):
-            state.dynamics_prior.update(samples.X, samples.U, world=state.name, iteration=self.iteration)
+            # sample-major order: the prior's buffer of the latest trajectories spans every condition
+            state.dynamics_prior.update(
+                samples.X.transpose(0, 1),
+                samples.U.transpose(0, 1),
+                world=state.name,
+                iteration=self.iteration,
+            )
             dynamics = fit_dynamics(
                 samples.X, samples.U, state.dynamics_prior, world=state.name, iteration=self.iteration
             )
@@ -310,7 +318,12 @@ class GPSTrainer:
                 (state.current.gains.mean_actions(state.samples.X) - mean).norm(dim=-1).mean()
             )
             with self._timed("dynamics"):
-                state.policy_prior.update(state.samples.X, mean, world=state.name, iteration=self.iteration)
+                state.policy_prior.update(
+                    state.samples.X.transpose(0, 1),
+                    mean.transpose(0, 1),
+                    world=state.name,
+                    iteration=self.iteration,
+                )
                 state.policy = fit_policy_linearization(
                     state.samples.X,
                     mean,
