@@ -250,10 +250,6 @@ class RunConfig:
         if not (1 <= self.eval.frame_height <= 512 and 1 <= self.eval.frame_width <= 640):
             raise ConfigError("eval.frame_height/frame_width must be at most 512 x 640 (the scene's buffer)")
 
-    def to_dict(self) -> dict[str, Any]:
-        """Plain nested dict (for the logger and results)."""
-        return dataclasses.asdict(self)
-
 
 def validate(run: RunConfig) -> tuple[Universe, Split]:
     """Check everything that can be checked before any work; the universe and its train/held-out split.

@@ -42,6 +42,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from modnet.bank import MONOLITHIC, ModuleBank
 from modnet.envs import WorldEnv, make_env
 from modnet.gps.trainer import GPSConfig, GPSTrainer
+from modnet.worlds import get_world
 
 __all__ = [
     "FINETUNE_STARTS",
@@ -145,11 +146,10 @@ def evaluation_env(
     pixels: bool = False,
 ) -> WorldEnv:
     """One env copy per condition of the set (the paper's 4 test positions by default)."""
-    probe = make_env(robot, task, conditions=conditions, seed=seed, num_conditions=num_conditions)
     return make_env(
         robot,
         task,
-        num_envs=len(probe.condition_params),
+        num_envs=len(get_world(robot, task).conditions(conditions, seed, num_conditions)),
         pixels=pixels,
         conditions=conditions,
         seed=seed,

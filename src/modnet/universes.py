@@ -62,14 +62,6 @@ class Split:
     holdout: World
     training: tuple[World, ...]
 
-    @property
-    def robot(self) -> str:
-        return self.holdout[0]
-
-    @property
-    def task(self) -> str:
-        return self.holdout[1]
-
 
 @dataclass(frozen=True)
 class Universe:
@@ -189,7 +181,7 @@ def main(argv: list[str] | None = None) -> None:
         for u in UNIVERSES.values():
             print(
                 f"{u.name}: {', '.join(u.robots)} x {', '.join(u.tasks)}; holds out {u.holdout}"
-                f"{' (pixels)' if u.pixels else ''}"
+                f"{' (pixels)' if u.pixels else ''}; {u.description}"
             )
         return
     try:

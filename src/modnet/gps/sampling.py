@@ -26,6 +26,7 @@ from torchrl.data import LazyTensorStorage, ReplayBuffer
 
 from modnet.envs import make_env
 from modnet.specs import TORQUE_LIMIT
+from modnet.worlds import get_world
 
 STATE_KEYS = (("robot", "state"), ("task", "state"))  # x = [robot_state, task_state]
 
@@ -86,8 +87,8 @@ class WorldSampler:
     ) -> None:
         if samples_per_condition < 1:
             raise ValueError(f"samples_per_condition must be at least 1, got {samples_per_condition}")
-        probe = make_env(robot, task, conditions=conditions, seed=seed, num_conditions=num_conditions)
-        self.num_conditions = len(probe.condition_params)
+        world = get_world(robot, task)
+        self.num_conditions = len(world.conditions(conditions, seed, num_conditions))
         self.samples_per_condition = samples_per_condition
         self.env = make_env(
             robot,
