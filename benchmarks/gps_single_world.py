@@ -27,7 +27,7 @@ def main() -> None:
     parser.add_argument("--robot", default="three_link")
     parser.add_argument("--task", default="reach")
     parser.add_argument("--algo", default=GPSConfig.algo, choices=["mdgps", "badmm"])
-    parser.add_argument("--iterations", type=int, default=12)
+    parser.add_argument("--iterations", type=int, default=20)
     parser.add_argument("--samples", type=int, default=5, help="samples per condition")
     parser.add_argument("--conditions", type=int, default=16, help="training conditions")
     parser.add_argument("--dropout", type=float, default=0.0)

@@ -132,6 +132,37 @@ def test_module_normalization_is_applied_and_checked():
     assert (two.normalization("extra")[1] == 3).all()
 
 
+@pytest.mark.parametrize(
+    "arch",
+    [
+        robot_arch(dropout=0.0, observations=((("robot", "state"), 6), ("extra", 2))),
+        task_arch(hidden=()),  # no trunk: the head's layer reads the inputs
+        task_arch(pixels=("task", "pixels"), image_shape=(16, 20, 3), conv_channels=(4,)),
+    ],
+    ids=["two observations after an interface", "head only", "with image features"],
+)
+def test_refit_normalization_keeps_the_function(arch):
+    module = BankModule(arch).eval()
+    td = TensorDict({}, [64])
+    for key, width in arch.reads:
+        td[interface_key(key)] = torch.rand(64, width)
+    for i, (key, dim) in enumerate(arch.observations):
+        td[key] = torch.randn(64, dim) * (3.0 + i) + 5.0  # far from the identity normalisation
+    if arch.pixels is not None:
+        td[arch.pixels] = torch.randint(0, 256, (64, *arch.image_shape), dtype=torch.uint8)
+    key = module.out_keys[0]
+    before = module(td.clone())[key]
+    module.fit_normalization(td, keep_function=True)
+    for obs_key, _ in arch.observations:
+        z = (td[obs_key] - module.normalization(obs_key)[0]) / module.normalization(obs_key)[1]
+        torch.testing.assert_close(z.mean(0), torch.zeros(z.shape[-1]), atol=1e-4, rtol=0)  # refitted ...
+    torch.testing.assert_close(module(td.clone())[key], before, atol=1e-4, rtol=1e-4)  # ... same outputs
+    plain = BankModule(arch).eval()
+    plain.load_state_dict(module.state_dict())
+    plain.fit_normalization(td.apply(lambda x: x * 2 if x.is_floating_point() else x))
+    assert not torch.allclose(plain(td.clone())[key], before, atol=1e-3)  # a plain refit moves them
+
+
 # --- heads, dropout -----------------------------------------------------------------------------------
 def test_gaussian_head_scale_is_learned_and_state_independent():
     module = BankModule(robot_arch(init_log_std=-1.0))

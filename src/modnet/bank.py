@@ -486,10 +486,14 @@ class ModuleBank(nn.Module):
 
     forward = forward_worlds
 
-    def fit_normalization(self, batches: Mapping[World | str, TensorDictBase]) -> None:
+    def fit_normalization(
+        self, batches: Mapping[World | str, TensorDictBase], keep_function: bool = False
+    ) -> None:
         """Set every used module's observation normalisation from the worlds' samples.
 
-        A module shared by several worlds is fitted on all of their samples pooled.
+        A module shared by several worlds is fitted on all of their samples pooled.  With
+        ``keep_function`` each module's first layer absorbs the change, so the policies act
+        exactly as before (GPS refits this way every iteration).
         """
         pooled: dict[BankModule, list[TensorDictBase]] = defaultdict(list)
         for world, td in batches.items():
@@ -498,7 +502,7 @@ class ModuleBank(nn.Module):
                 if keys:
                     pooled[module].append(td.select(*keys).reshape(-1))
         for module, samples in pooled.items():
-            module.fit_normalization(torch.cat(samples))
+            module.fit_normalization(torch.cat(samples), keep_function)
 
     # --- bookkeeping and baselines ----------------------------------------------------------------
     def _module_names(self) -> Iterator[tuple[str, str, BankModule]]:

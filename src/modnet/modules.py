@@ -407,6 +407,34 @@ class ModuleNet(nn.Module):
         else:
             self.head = GaussianHead(last, arch.out_dim, arch.init_log_std)
 
+    def first_linear(self) -> nn.Linear:
+        """The layer that reads the concatenated inputs (interfaces, observations, image features)."""
+        if len(self.trunk):
+            return self.trunk[0]
+        return self.head.layers[0] if isinstance(self.head, InterfaceHead) else self.head.mean
+
+    @torch.no_grad()
+    def refit_normalization(self, observations: Sequence[torch.Tensor]) -> None:
+        """Refit every :class:`Normalizer` to ``observations`` (one tensor per normaliser) and
+        fold the change into :meth:`first_linear`, so the network computes the same function.
+
+        GPS fixes the normalisation on its first samples; the states visited later (an arm
+        swung far from its start) then reach the network as z-scores in the tens.  Refitting
+        this way keeps the inputs well scaled without undoing any training.
+        """
+        layer = self.first_linear()
+        start = layer.in_features - sum(n.loc.numel() for n in self.normalizers)
+        if self.pixels is not None:
+            start -= self.pixels.out_dim
+        for norm, x in zip(self.normalizers, observations, strict=True):
+            old_loc, old_scale = norm.loc.clone(), norm.scale.clone()
+            norm.fit(x)
+            cols = slice(start, start + old_loc.numel())
+            weight = layer.weight[:, cols]
+            layer.bias += weight @ ((norm.loc - old_loc) / old_scale)
+            layer.weight[:, cols] = weight * (norm.scale / old_scale)
+            start = cols.stop
+
     def forward(self, *inputs: torch.Tensor) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
         n_if, n_obs = self.num_interfaces, len(self.normalizers)
         parts = list(inputs[:n_if])
@@ -476,7 +504,11 @@ class BankModule(TensorDictModule):
         norm = self._normalizer(key)
         return norm.loc.clone(), norm.scale.clone()
 
-    def fit_normalization(self, data: TensorDictBase) -> None:
-        """Set every observation's normalisation from the samples in ``data``."""
+    def fit_normalization(self, data: TensorDictBase, keep_function: bool = False) -> None:
+        """Set every observation's normalisation from the samples in ``data``; with
+        ``keep_function`` the first layer absorbs the change (:meth:`ModuleNet.refit_normalization`)."""
+        if keep_function:
+            self.module.refit_normalization([data.get(key) for key, _ in self.arch.observations])
+            return
         for key, _ in self.arch.observations:
             self._normalizer(key).fit(data.get(key))

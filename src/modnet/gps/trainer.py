@@ -71,7 +71,7 @@ class GPSConfig:
     shaping: bool = True
     cost_ramp: Ramp = "constant"
     final_cost_multiplier: float = 5.0
-    init_variance: float = 0.5
+    init_variance: float = 1.0  # of the first controllers: their spread also sets the first input scaling
     init_kp: float = 0.5
     init_kd: float = 0.3
     kl_step: float = 1.0
@@ -247,13 +247,16 @@ class GPSTrainer:
         from_policy = self.iteration == 0 and self.config.init_from_policy
         for state in states:
             self._sample_and_fit(state, self._composed(state) if from_policy else None)
+        # Inputs z-scored over this iteration's states; after the first fit the networks'
+        # first layers absorb the change, so no training is undone.
+        fresh = self.iteration == 0 and not from_policy
+        self.bank.fit_normalization({s.name: s.samples.obs for s in states}, keep_function=not fresh)
         if from_policy:  # the controllers start where the composed policy is
             self._policy_outputs(states)
             for state in states:
                 state.controller.set_gains(state.policy)
                 state.current.gains = frozen(state.policy)
-        elif self.iteration == 0:
-            self.bank.fit_normalization({s.name: s.samples.obs for s in states})
+        elif fresh:
             self._s_step(self.config.initial_sgd_steps, {s.name: self._controller_targets(s) for s in states})
         if self.config.algo == "mdgps":
             self._mdgps_update(states)
