@@ -223,6 +223,7 @@ def main(cfg: DictConfig) -> None:
         start = time.perf_counter()
         results, result = evaluate(run, universe, split, bank)
         results["iterations"] = trainer.iteration
+        results["samples"] = trainer.samples
         seconds["evaluate"] = time.perf_counter() - start
 
         # 5. optionally: GPS on the held-out world from four starts

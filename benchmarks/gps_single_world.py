@@ -45,7 +45,6 @@ def main() -> None:
         print(f"iteration {i}: " + " ".join(f"{k}={v:.3g}" for k, v in diag.items()), flush=True)
     distance = score(bank, args.robot, args.task, evaluation_env(args.robot, args.task)).distance
     wall = time.perf_counter() - start
-    samples = args.iterations * sum(s.sampler.env.batch_size[0] for s in trainer.states.values())
     print(
         json.dumps(
             {
@@ -54,7 +53,8 @@ def main() -> None:
                 "final_distance": [round(float(d), 4) for d in distance],
                 "success_distance": task_spec(args.task).success_distance,
                 "iterations": args.iterations,
-                "samples": samples,
+                "samples": trainer.samples["trajectories"],
+                "env_steps": trainer.samples["env_steps"],
                 "wall_s": round(wall, 1),
             }
         )

@@ -82,3 +82,26 @@ def test_a_two_job_joblib_multirun_writes_two_results_and_aggregates(tmp_path):
     assert rows[0] == "robot,reach_red,reach_black"
     assert rows[1].split(",")[1] and not rows[1].split(",")[2]  # three_link/reach_red held out
     assert rows[2].split(",")[2] and not rows[2].split(",")[1]  # four_link/reach_black held out
+
+    # benchmarks/publish_results.py turns the same sweep into docs/results JSON
+    docs = tmp_path / "docs"
+
+    def publish(*args):
+        done = subprocess.run(
+            [sys.executable, str(ROOT / "benchmarks" / "publish_results.py"), *args, "--docs", str(docs)],
+            cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=120,
+        )  # fmt: skip
+        assert done.returncode == 0, done.stderr
+        return json.loads(done.stdout.splitlines()[-1])
+
+    sweep = publish("lowo", str(tmp_path), "--experiment", "tiny_lowo")
+    assert json.loads((docs / "results" / "tiny_lowo.json").read_text()) == sweep
+    assert (docs / "tiny_lowo.png").exists() and len(sweep["jobs"]) == 2
+    assert sweep["command"].startswith("python run.py -m universe=tiny")
+    assert sweep["samples"]["trajectories"] == sum(j["samples"]["trajectories"] for j in sweep["jobs"]) > 0
+    job = next(r.parent for r in results if json.loads(r.read_text())["holdout"] == "four_link/reach_black")
+    one = publish("zero-shot", str(job), "--experiment", "tiny")
+    assert one["holdout"] == "four_link/reach_black" and len(one["positions"]) == 4
+    assert set(one["positions"][0]) == {"ours", "random", "wrong_task"} and one["wall_s"] > 0
+    both = publish("algorithms", str(job), str(job), "--experiment", "tiny_algorithms")
+    assert [r["algo"] for r in both["runs"]] == ["badmm", "badmm"]

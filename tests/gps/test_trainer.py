@@ -44,6 +44,8 @@ def test_multi_world_training_lowers_every_worlds_cost(algo):
     assert expected <= set(last["three_link/reach_red"])
     if algo == "badmm":
         assert "nu" in last["three_link/reach_red"]
+    # 3 iterations x 4 worlds x 4 conditions x 3 samples, 20 steps each
+    assert trainer.samples == {"trajectories": 144, "env_steps": 144 * 20}
 
 
 def test_seeded_runs_are_reproducible():

@@ -486,6 +486,15 @@ class GPSTrainer:
             module.set_std((weight_sum / precision_sum).sqrt().to(torch.float32))
 
     # --- reporting ----------------------------------------------------------------------------------
+    @property
+    def samples(self) -> dict[str, int]:
+        """Environment samples drawn so far over every world: trajectories and control steps."""
+        samplers = [s.sampler for s in self.states.values()]
+        return {
+            "trajectories": self.iteration * sum(s.env.batch_size[0] for s in samplers),
+            "env_steps": self.iteration * sum(s.env.batch_size[0] * s.horizon for s in samplers),
+        }
+
     def _diagnose(self, state: WorldState) -> dict[str, float]:
         return dict(sorted(state.diagnostics.items()))
 

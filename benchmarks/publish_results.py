@@ -1,0 +1,190 @@
+"""Turn run.py outputs into the machine-readable results under ``docs/results/``.
+
+    # one zero-shot job (python run.py ... eval.random_conditions=20)
+    python benchmarks/publish_results.py zero-shot RUN_DIR --experiment color_reach_state
+    # a leave-one-world-out sweep (python run.py -m holdout=all ...)
+    python benchmarks/publish_results.py lowo SWEEP_DIR --experiment color_reach_state_lowo
+    # the same held-out world trained by BADMM and by MDGPS
+    python benchmarks/publish_results.py algorithms BADMM_DIR MDGPS_DIR --experiment badmm_vs_mdgps
+
+Each writes ``docs/results/<experiment>.json`` (and, for a sweep, ``docs/<experiment>.png``)
+from the jobs' own ``results.json`` files, with the command that produced them (read from
+Hydra's ``.hydra/overrides.yaml``), the environment samples and the wall time, and the
+paper's numbers where the paper has that experiment.  The last line is the written JSON.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from modnet.aggregate import collect, write_heatmap
+from modnet.files import write_atomically
+
+ROOT = Path(__file__).resolve().parents[1]
+DOCS = ROOT / "docs"
+
+#: The paper's tables (distance over the last 5 steps at its 4 test positions).
+PAPER = {
+    "color_reach": {
+        "ours": [0.12, 0.28, 0.21, 0.08],
+        "random": [1.16, 1.29, 1.35, 1.29],
+        "wrong_task": [2.34, 1.75, 1.65, 2.41],
+    },
+    "visual_manipulation": {
+        "ours": [0.48, 0.19, 0.25, 0.23],
+        "random": [0.95, 1.79, 1.54, 0.94],
+        "wrong_task": [0.95, 1.14, 1.27, 1.32],
+    },
+}
+
+
+def command(run_dir: Path, multirun: bool = False) -> str:
+    """The ``python run.py`` line that produced ``run_dir`` (its Hydra overrides)."""
+    overrides = yaml.safe_load((run_dir / ".hydra" / "overrides.yaml").read_text()) or []
+    keep = [o for o in overrides if not o.startswith(("hydra.run.dir", "hydra.sweep.dir"))]
+    return " ".join(["python run.py", *(["-m"] if multirun else []), *keep])
+
+
+def _round(x: float) -> float:
+    return round(float(x), 4)
+
+
+def zero_shot(run_dir: Path, experiment: str) -> dict:
+    results = json.loads((run_dir / "results.json").read_text())
+    methods = results["methods"]
+    wrong = methods["wrong_task"]  # None where no other task module reads this world's task state
+    n = len(methods["composed"]["distance"])
+    wrong_distance = wrong["distance"] if wrong else [None] * n
+    rows = zip(methods["composed"]["distance"], methods["random"]["distance"], wrong_distance, strict=True)
+    names = ["composed", "random"] + (["wrong_task"] if wrong else [])
+    out = {
+        "experiment": experiment,
+        "universe": results["universe"],
+        "holdout": results["holdout"],
+        "algo": results["algo"],
+        "seed": results["seed"],
+        "command": command(run_dir),
+        "success_distance": results["success_distance"],
+        "wrong_task_module": wrong["task"] if wrong else None,
+        "positions": [
+            {"ours": _round(o), "random": _round(r), "wrong_task": None if w is None else _round(w)}
+            for o, r, w in rows
+        ],
+        "means": {name: _round(methods[name]["mean"]) for name in names},
+        "success_rate": {name: methods[name]["success_rate"] for name in names},
+        "samples": results["samples"],
+        "wall_s": sum(results["seconds"].values()),
+    }
+    if results["universe"] in PAPER:
+        out["paper"] = PAPER[results["universe"]]
+    extra = results.get("random_conditions")
+    if extra:
+        m = extra["methods"]
+        out["extended"] = {
+            "n": extra["num_conditions"],
+            "seed": extra["seed"],
+            "ours_mean": _round(m["composed"]["mean"]),
+            "ours_ci95": [_round(c) for c in m["composed"]["ci95"]],
+            "ours_success_rate": m["composed"]["success_rate"],
+            "random_mean": _round(m["random"]["mean"]),
+            "wrong_task_mean": _round(m["wrong_task"]["mean"]) if m["wrong_task"] else None,
+        }
+    return out
+
+
+def lowo(sweep_dir: Path, experiment: str, docs: Path = DOCS) -> dict:
+    files = sorted(sweep_dir.rglob("results.json"))
+    jobs = []
+    for f in files:
+        r = json.loads(f.read_text())
+        m = r["methods"]
+        jobs.append(
+            {
+                "holdout": r["holdout"],
+                "composed": _round(m["composed"]["mean"]),
+                "random": _round(m["random"]["mean"]),
+                "wrong_task": _round(m["wrong_task"]["mean"]) if m["wrong_task"] else None,
+                "composed_success_rate": m["composed"]["success_rate"],
+                "beats_both": bool(
+                    m["composed"]["mean"] < m["random"]["mean"]
+                    and (not m["wrong_task"] or m["composed"]["mean"] < m["wrong_task"]["mean"])
+                ),
+                "samples": r["samples"],
+                "wall_s": sum(r["seconds"].values()),
+            }
+        )
+    heatmap = collect(sweep_dir)
+    _, png = write_heatmap(heatmap, sweep_dir)
+    figure = docs / f"{experiment}.png"
+    figure.parent.mkdir(parents=True, exist_ok=True)
+    shutil.copyfile(png, figure)
+    composed = np.array([j["composed"] for j in jobs])
+    return {
+        "experiment": experiment,
+        "universe": heatmap.universe,
+        "command": command(files[0].parent, multirun=True),
+        "robots": heatmap.robots,
+        "tasks": heatmap.tasks,
+        "composed_distance": [[None if np.isnan(v) else _round(v) for v in row] for row in heatmap.distance],
+        "jobs": jobs,
+        "worlds_beating_both_baselines": sum(j["beats_both"] for j in jobs),
+        "composed_mean_over_worlds": _round(composed.mean()),
+        "figure": figure.name,
+        "samples": {k: sum(j["samples"][k] for j in jobs) for k in ("trajectories", "env_steps")},
+        "wall_s": sum(j["wall_s"] for j in jobs),
+    }
+
+
+def last_iteration(run_dir: Path) -> list[dict]:
+    return list(json.loads((run_dir / "history.json").read_text())[-1]["worlds"].values())
+
+
+def algorithms(run_dirs: list[Path], experiment: str) -> dict:
+    runs = []
+    for run_dir in run_dirs:
+        r = json.loads((run_dir / "results.json").read_text())
+        composed = r["methods"]["composed"]
+        runs.append(
+            {
+                "algo": r["algo"],
+                "holdout": r["holdout"],
+                "command": command(run_dir),
+                "composed_distance": [_round(d) for d in composed["distance"]],
+                "composed_mean": _round(composed["mean"]),
+                "composed_success_rate": composed["success_rate"],
+                # the training worlds' controller samples in the last iteration
+                "final_sample_distance": _round(np.mean([w["distance"] for w in last_iteration(run_dir)])),
+                "samples": r["samples"],
+                "wall_s": sum(r["seconds"].values()),
+            }
+        )
+    return {"experiment": experiment, "runs": runs}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("kind", choices=["zero-shot", "lowo", "algorithms"])
+    parser.add_argument("paths", type=Path, nargs="+", help="run directories (a sweep directory for lowo)")
+    parser.add_argument("--experiment", required=True, help="the name under docs/results/")
+    parser.add_argument("--docs", type=Path, default=DOCS, help="the docs directory to write into")
+    args = parser.parse_args()
+    if args.kind == "zero-shot":
+        data = zero_shot(args.paths[0], args.experiment)
+    elif args.kind == "lowo":
+        data = lowo(args.paths[0], args.experiment, args.docs)
+    else:
+        data = algorithms(args.paths, args.experiment)
+    path = args.docs / "results" / f"{args.experiment}.json"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_atomically(path, lambda tmp: tmp.write_text(json.dumps(data, indent=2) + "\n"))
+    print(json.dumps(data))
+
+
+if __name__ == "__main__":
+    main()
