@@ -44,11 +44,21 @@ PAPER = {
 }
 
 
-def command(run_dir: Path, multirun: bool = False) -> str:
-    """The ``python run.py`` line that produced ``run_dir`` (its Hydra overrides)."""
+def command(run_dir: Path) -> str:
+    """The ``python run.py`` line that produced the job in ``run_dir`` (its Hydra overrides)."""
     overrides = yaml.safe_load((run_dir / ".hydra" / "overrides.yaml").read_text()) or []
-    keep = [o for o in overrides if not o.startswith(("hydra.run.dir", "hydra.sweep.dir"))]
-    return " ".join(["python run.py", *(["-m"] if multirun else []), *keep])
+    return " ".join(["python run.py", *(o for o in overrides if not o.startswith("hydra.run.dir"))])
+
+
+def sweep_command(sweep_dir: Path, num_worlds: int) -> str:
+    """The ``python run.py -m`` line of a sweep, ``holdout=all`` when it held out every world."""
+    overrides = yaml.safe_load((sweep_dir / "multirun.yaml").read_text())["hydra"]["overrides"]
+    hydra = [o for o in overrides["hydra"] if not o.startswith(("hydra.mode", "hydra.sweep.dir"))]
+    task = [
+        "holdout=all" if o.startswith("holdout=") and o.count(",") + 1 == num_worlds else o
+        for o in overrides["task"]
+    ]
+    return " ".join(["python run.py -m", *task, *hydra])
 
 
 def _round(x: float) -> float:
@@ -128,7 +138,7 @@ def lowo(sweep_dir: Path, experiment: str, docs: Path = DOCS) -> dict:
     return {
         "experiment": experiment,
         "universe": heatmap.universe,
-        "command": command(files[0].parent, multirun=True),
+        "command": sweep_command(sweep_dir, heatmap.distance.size),
         "robots": heatmap.robots,
         "tasks": heatmap.tasks,
         "composed_distance": [[None if np.isnan(v) else _round(v) for v in row] for row in heatmap.distance],

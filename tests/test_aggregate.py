@@ -97,7 +97,7 @@ def test_a_two_job_joblib_multirun_writes_two_results_and_aggregates(tmp_path):
     sweep = publish("lowo", str(tmp_path), "--experiment", "tiny_lowo")
     assert json.loads((docs / "results" / "tiny_lowo.json").read_text()) == sweep
     assert (docs / "tiny_lowo.png").exists() and len(sweep["jobs"]) == 2
-    assert sweep["command"].startswith("python run.py -m universe=tiny")
+    assert sweep["command"].startswith("python run.py -m universe=tiny") and "n_jobs=2" in sweep["command"]
     assert sweep["samples"]["trajectories"] == sum(j["samples"]["trajectories"] for j in sweep["jobs"]) > 0
     job = next(r.parent for r in results if json.loads(r.read_text())["holdout"] == "four_link/reach_black")
     one = publish("zero-shot", str(job), "--experiment", "tiny")

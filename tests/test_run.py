@@ -81,7 +81,8 @@ def test_tiny_pipeline_end_to_end_in_under_two_minutes(tiny_run):
     assert results["universe"] == "tiny" and results["holdout"] == "four_link/reach_black"
     assert results["success_distance"] == 0.1 and results["iterations"] == ITERATIONS
     samples = results["samples"]
-    assert samples["trajectories"] > 0 and samples["env_steps"] == samples["trajectories"] * results["horizon"]
+    assert samples["trajectories"] > 0
+    assert samples["env_steps"] == samples["trajectories"] * results["horizon"]
     methods = results["methods"]
     assert set(methods) >= {"composed", "random", "wrong_task", "wrong_task_each"}
     for scores in (
