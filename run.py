@@ -40,7 +40,7 @@ from modnet.bank import ModuleBank  # noqa: E402
 from modnet.checkpoint import CHECKPOINT, Checkpoint, CheckpointError, load_checkpoint, save_checkpoint  # noqa: E402
 from modnet.config import ConfigError, RunConfig, flatten, register_configs, validate  # noqa: E402
 from modnet.envs import WorldEnv  # noqa: E402
-from modnet.evaluate import ZeroShot, evaluation_env, finetune, zero_shot  # noqa: E402
+from modnet.evaluate import FineTuning, ZeroShot, evaluation_env, finetune, zero_shot  # noqa: E402
 from modnet.gps.trainer import GPSTrainer  # noqa: E402
 from modnet.loggers import RunLogger  # noqa: E402
 from modnet.universes import Split, Universe, UniverseError, get_universe, world_name  # noqa: E402
@@ -149,10 +149,10 @@ def evaluate(run: RunConfig, universe: Universe, split: Split, bank: ModuleBank)
 
 def compare_finetuning(
     run: RunConfig, universe: Universe, split: Split, run_dir: Path, wrong_task: str | None, log: RunLogger
-) -> dict[str, list[float]]:
+) -> FineTuning:
     """GPS on the held-out world from the composed modules, the wrong task module and from scratch
     (with and without shaping): the network's mean test distance per iteration, plotted and logged."""
-    curves = finetune(
+    tuning = finetune(
         run_dir / "bank",
         *split.holdout,
         held_out_env(run, universe, split),
@@ -165,11 +165,11 @@ def compare_finetuning(
     )
     title = f"fine-tuning {world_name(split.holdout)}"
     success = get_world(*split.holdout).task.success_distance
-    report.plot_finetune(curves, success, run_dir / "finetune.png", title=title)
-    for name, curve in curves.items():
+    report.plot_finetune(tuning.curves, success, run_dir / "finetune.png", title=title)
+    for name, curve in tuning.curves.items():
         for i, distance in enumerate(curve):
             log.scalars({f"finetune/{name}/distance": distance}, step=i)
-    return curves
+    return tuning
 
 
 @hydra.main(version_base=None, config_path="conf", config_name="config")
@@ -230,7 +230,9 @@ def main(cfg: DictConfig) -> None:
         if run.finetune:
             start = time.perf_counter()
             wrong_task = result.wrong_task[0] if result.wrong_task else None
-            results["finetune"] = compare_finetuning(run, universe, split, run_dir, wrong_task, log)
+            tuning = compare_finetuning(run, universe, split, run_dir, wrong_task, log)
+            results["finetune"] = tuning.curves
+            results["finetune_samples"] = tuning.samples
             figures.append("finetune")
             seconds["finetune"] = time.perf_counter() - start
 

@@ -44,6 +44,16 @@ PAPER = {
 }
 
 
+#: Universes whose table the paper reports for a sibling universe (the same grid from images).
+PAPER_COUNTERPART = {"color_reach_state": "color_reach"}
+
+#: The paper's fine-tuning claim (section V-B figure), for which it gives curves, not numbers.
+PAPER_FINETUNE = (
+    "the composed start without shaping learns faster than scratch with shaping; "
+    "scratch without shaping makes no progress"
+)
+
+
 def command(run_dir: Path) -> str:
     """The ``python run.py`` line that produced the job in ``run_dir`` (its Hydra overrides)."""
     overrides = yaml.safe_load((run_dir / ".hydra" / "overrides.yaml").read_text()) or []
@@ -91,8 +101,9 @@ def zero_shot(run_dir: Path, experiment: str) -> dict:
         "samples": results["samples"],
         "wall_s": sum(results["seconds"].values()),
     }
-    if results["universe"] in PAPER:
-        out["paper"] = PAPER[results["universe"]]
+    paper = PAPER_COUNTERPART.get(results["universe"], results["universe"])
+    if paper in PAPER:
+        out["paper"] = {"universe": paper, **PAPER[paper]}
     extra = results.get("random_conditions")
     if extra:
         m = extra["methods"]
@@ -105,7 +116,23 @@ def zero_shot(run_dir: Path, experiment: str) -> dict:
             "random_mean": _round(m["random"]["mean"]),
             "wrong_task_mean": _round(m["wrong_task"]["mean"]) if m["wrong_task"] else None,
         }
+    if "finetune" in results:
+        out["finetune"] = finetuning(results)
     return out
+
+
+def finetuning(results: dict) -> dict:
+    """Fine-tuning curves (iteration -> mean test distance; 0: before) and iterations to success."""
+    success = results["success_distance"]
+    curves = {start: [_round(d) for d in curve] for start, curve in results["finetune"].items()}
+    # the first iteration whose mean test distance is below the success distance; None: never
+    reached = {start: [i for i, d in enumerate(curve) if d < success] for start, curve in curves.items()}
+    return {
+        "curves": curves,
+        "iterations_to_success": {start: its[0] if its else None for start, its in reached.items()},
+        "samples": results.get("finetune_samples"),
+        "paper": PAPER_FINETUNE,
+    }
 
 
 def lowo(sweep_dir: Path, experiment: str, docs: Path = DOCS) -> dict:

@@ -126,10 +126,16 @@ def test_finetuning_starts_set_up_the_held_out_world_as_described(tmp_path):
 def test_finetune_gives_one_curve_per_start_from_before_training(bank, env, tmp_path):
     bank.save(tmp_path / "bank")
     config = GPSConfig(horizon=12, samples_per_condition=2, sgd_steps=10, initial_sgd_steps=10)
-    curves = finetune(tmp_path / "bank", *HELD_OUT, env, config, iterations=1, wrong_task="reach_red")
+    tuning = finetune(tmp_path / "bank", *HELD_OUT, env, config, iterations=1, wrong_task="reach_red")
+    curves = tuning.curves
     assert list(curves) == list(FINETUNE_STARTS)
+    trajectories = config.num_conditions * config.samples_per_condition  # one iteration of one world
+    assert all(
+        s == {"trajectories": trajectories, "env_steps": trajectories * config.horizon}
+        for s in tuning.samples.values()
+    )
     assert all(len(c) == 2 and np.isfinite(c).all() for c in curves.values())
     assert curves["composed"][0] == pytest.approx(score(bank, *HELD_OUT, env).mean)  # entry 0: the saved bank
     assert "wrong_task" not in finetune(
         tmp_path / "bank", *HELD_OUT, env, config, iterations=0, wrong_task=None
-    )
+    ).curves

@@ -96,6 +96,7 @@ def test_tiny_pipeline_end_to_end_in_under_two_minutes(tiny_run):
     assert len(results["random_conditions"]["methods"]["composed"]["distance"]) == 3
     assert set(results["finetune"]) == {"composed", "wrong_task", "scratch_shaping", "scratch_no_shaping"}
     assert all(len(curve) == 2 for curve in results["finetune"].values())  # before + 1 iteration
+    assert set(results["finetune_samples"]) == set(results["finetune"])
     for name in [
         "learning_curves.png",
         "zero_shot.png",
@@ -110,6 +111,26 @@ def test_tiny_pipeline_end_to_end_in_under_two_minutes(tiny_run):
         assert (run_dir / name).stat().st_size > 0, name
     assert "composed" in done.stdout and "Zero-shot four_link/reach_black" in done.stdout
     assert list((run_dir / "tiny-four_link-reach_black" / "scalars" / "train").rglob("distance.csv"))
+
+
+def test_published_fine_tuning_has_curves_iterations_to_success_and_samples(tiny_run, tmp_path):
+    run_dir, done, _ = tiny_run
+    assert done.returncode == 0, done.stderr[-3000:]
+    published = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "publish_results.py"), "zero-shot", str(run_dir)]
+        + ["--experiment", "tiny_finetune", "--docs", str(tmp_path)],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    tuning = json.loads(published.stdout.splitlines()[-1])["finetune"]
+    results = json.loads((run_dir / "results.json").read_text())
+    assert tuning["curves"] == {s: pytest.approx(c, abs=1e-4) for s, c in results["finetune"].items()}
+    for start, curve in tuning["curves"].items():
+        reached = tuning["iterations_to_success"][start]
+        below = [i for i, d in enumerate(curve) if d < results["success_distance"]]
+        assert reached == (below[0] if below else None)
+    assert tuning["samples"] == results["finetune_samples"]
 
 
 def test_the_saved_bank_knows_what_each_module_was_trained_on(tiny_run):

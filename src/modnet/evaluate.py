@@ -46,6 +46,7 @@ from modnet.worlds import get_world
 
 __all__ = [
     "FINETUNE_STARTS",
+    "FineTuning",
     "Scores",
     "ZeroShot",
     "evaluation_env",
@@ -272,6 +273,15 @@ def _start_bank(bank_dir: Path, start: str, robot: str, task: str, wrong_task: s
     return bank
 
 
+@dataclass
+class FineTuning:
+    """What :func:`finetune` measured: per start, the mean test distance after 0, 1, ... GPS
+    iterations (entry 0: before fine-tuning) and the environment samples it drew."""
+
+    curves: dict[str, list[float]]
+    samples: dict[str, dict[str, int]]
+
+
 def finetune(
     bank_dir: str | Path,
     robot: str,
@@ -284,19 +294,20 @@ def finetune(
     starts: Sequence[str] = FINETUNE_STARTS,
     pixels: bool = False,
     progress: Callable[[str, int, float], None] | None = None,
-) -> dict[str, list[float]]:
+) -> FineTuning:
     """GPS on the held-out world alone from each start; the test distance after every iteration.
 
     Starts: ``composed`` (the saved bank as is), ``wrong_task`` (``wrong_task``'s module in
     the held-out task's place), ``scratch_shaping`` and ``scratch_no_shaping`` (a freshly
     initialised bank, the cost with or without its shaping term).  The first two sample
     their first iteration from the network (``init_from_policy``); all use ``config``'s
-    seeds.  Returns ``{start: [mean test distance after 0, 1, ..., iterations iterations]}``
-    (entry 0: before fine-tuning); ``wrong_task`` is left out when there is no wrong task
-    module (None).  ``progress(start, iteration, distance)`` is called after each iteration.
+    seeds.  Returns the :class:`FineTuning` curves ``{start: [mean test distance after 0, 1,
+    ..., iterations iterations]}`` and each start's samples; ``wrong_task`` is left out when
+    there is no wrong task module (None).  ``progress(start, iteration, distance)`` is called
+    after each iteration.
     """
     bank_dir = Path(bank_dir)
-    curves: dict[str, list[float]] = {}
+    result = FineTuning(curves={}, samples={})
     for start in starts:
         if start == "wrong_task" and wrong_task is None:
             continue
@@ -313,5 +324,6 @@ def finetune(
             curve.append(score(bank, robot, task, env).mean)
             if progress is not None:
                 progress(start, iteration + 1, curve[-1])
-        curves[start] = curve
-    return curves
+        result.curves[start] = curve
+        result.samples[start] = trainer.samples
+    return result
