@@ -104,18 +104,8 @@ def zero_shot(run_dir: Path, experiment: str) -> dict:
     paper = PAPER_COUNTERPART.get(results["universe"], results["universe"])
     if paper in PAPER:
         out["paper"] = {"universe": paper, **PAPER[paper]}
-    extra = results.get("random_conditions")
-    if extra:
-        m = extra["methods"]
-        out["extended"] = {
-            "n": extra["num_conditions"],
-            "seed": extra["seed"],
-            "ours_mean": _round(m["composed"]["mean"]),
-            "ours_ci95": [_round(c) for c in m["composed"]["ci95"]],
-            "ours_success_rate": m["composed"]["success_rate"],
-            "random_mean": _round(m["random"]["mean"]),
-            "wrong_task_mean": _round(m["wrong_task"]["mean"]) if m["wrong_task"] else None,
-        }
+    if results.get("random_conditions"):
+        out["extended"] = _extended(results)
     if "finetune" in results:
         out["finetune"] = finetuning(results)
     return out
@@ -132,6 +122,23 @@ def finetuning(results: dict) -> dict:
         "iterations_to_success": {start: its[0] if its else None for start, its in reached.items()},
         "samples": results.get("finetune_samples"),
         "paper": PAPER_FINETUNE,
+    }
+
+
+def _extended(results: dict) -> dict | None:
+    """The zero-shot scores on the extra random positions (``eval.random_conditions``), if any."""
+    extra = results.get("random_conditions")
+    if not extra:
+        return None
+    m = extra["methods"]
+    return {
+        "n": extra["num_conditions"],
+        "seed": extra["seed"],
+        "ours_mean": _round(m["composed"]["mean"]),
+        "ours_ci95": [_round(c) for c in m["composed"]["ci95"]],
+        "ours_success_rate": m["composed"]["success_rate"],
+        "random_mean": _round(m["random"]["mean"]),
+        "wrong_task_mean": _round(m["wrong_task"]["mean"]) if m["wrong_task"] else None,
     }
 
 
@@ -195,6 +202,7 @@ def algorithms(run_dirs: list[Path], experiment: str) -> dict:
                 "composed_distance": [_round(d) for d in composed["distance"]],
                 "composed_mean": _round(composed["mean"]),
                 "composed_success_rate": composed["success_rate"],
+                "extended": _extended(r),
                 # the training worlds' controller samples in the last iteration
                 "final_sample_distance": _round(np.mean([w["distance"] for w in last_iteration(run_dir)])),
                 "samples": r["samples"],
