@@ -164,6 +164,8 @@ def lowo(sweep_dir: Path, experiment: str, docs: Path = DOCS) -> dict:
             }
         )
     heatmap = collect(sweep_dir)
+    order = [f"{robot}/{task}" for robot in heatmap.robots for task in heatmap.tasks]
+    jobs.sort(key=lambda job: order.index(job["holdout"]))  # the heatmap's order, robot-major
     _, png = write_heatmap(heatmap, sweep_dir)
     figure = docs / f"{experiment}.png"
     figure.parent.mkdir(parents=True, exist_ok=True)
