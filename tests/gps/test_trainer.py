@@ -48,6 +48,21 @@ def test_multi_world_training_lowers_every_worlds_cost(algo):
     assert trainer.samples == {"trajectories": 144, "env_steps": 144 * 20}
 
 
+def test_a_pixel_bank_trains_its_conv_task_modules_from_rendered_samples():
+    """From images (the paper's colour reach): the samples render, the S-step regresses on them."""
+    bank = ModuleBank.build(["three_link"], ["reach_red", "reach_black"], pixels=True, seed=0)
+    worlds = [("three_link", "reach_red"), ("three_link", "reach_black")]
+    conv = bank.get("task", "reach_red").module.pixels.convs
+    before = [p.detach().clone() for p in conv.parameters()]
+    config = small_config(horizon=8, samples_per_condition=2, sgd_steps=3, initial_sgd_steps=3)
+    trainer = GPSTrainer(bank, worlds, config, pixels=True)
+    diagnostics = trainer.step()
+    assert set(diagnostics) == {"three_link/reach_red", "three_link/reach_black"}
+    pixels = trainer.states["three_link/reach_red"].samples.obs["task", "pixels"]
+    assert pixels.dtype == torch.uint8 and pixels.shape[-3:] == (64, 80, 3) and pixels.float().std() > 10
+    assert not any(torch.equal(p, b) for p, b in zip(conv.parameters(), before, strict=True))
+
+
 def test_seeded_runs_are_reproducible():
     a = trainer_for(worlds=GRID[:2]).step()
     b = trainer_for(worlds=GRID[:2]).step()
