@@ -194,7 +194,6 @@ def main(cfg: DictConfig) -> None:
         log.config(flatten(OmegaConf.to_container(cfg, resolve=True)))
 
         # 2. train the bank on every training world
-        start = time.perf_counter()
         bank = ModuleBank.build(
             universe.robots,
             universe.tasks,
@@ -208,7 +207,7 @@ def main(cfg: DictConfig) -> None:
             trainer.load_state_dict(resume_from.trainer)
             print(f"resumed {checkpoint} after iteration {trainer.iteration}")
         train(trainer, run.gps.iterations, checkpoint, identity, log)
-        seconds["train"] = time.perf_counter() - start
+        seconds["train"] = trainer.seconds  # GPS iterations only, summed over a resumed run's parts
 
         # 3. save the bank (manifest included) and the training curves
         for world in split.training:

@@ -55,9 +55,11 @@ PAPER_FINETUNE = (
 
 
 def command(run_dir: Path) -> str:
-    """The ``python run.py`` line that produced the job in ``run_dir`` (its Hydra overrides)."""
+    """The ``python run.py`` line that produced the job in ``run_dir`` (its Hydra overrides);
+    ``resume=true`` is left out: a resumed run gives what the uninterrupted one gives."""
     overrides = yaml.safe_load((run_dir / ".hydra" / "overrides.yaml").read_text()) or []
-    return " ".join(["python run.py", *(o for o in overrides if not o.startswith("hydra.run.dir"))])
+    kept = [o for o in overrides if not o.startswith(("hydra.run.dir", "resume="))]
+    return " ".join(["python run.py", *kept])
 
 
 def sweep_command(sweep_dir: Path, num_worlds: int) -> str:

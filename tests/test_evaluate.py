@@ -13,6 +13,7 @@ from modnet.evaluate import (
     finetune,
     rollout,
     score,
+    start_config,
     zero_shot,
 )
 from modnet.gps.trainer import GPSConfig
@@ -121,6 +122,18 @@ def test_finetuning_starts_set_up_the_held_out_world_as_described(tmp_path):
     assert same(wrong.get("task", "reach_black"), saved["reach_red"])
     scratch = _start_bank(tmp_path / "bank", "scratch_shaping", *HELD_OUT, None, seed=0)
     assert not same(scratch.get("task", "reach_black"), saved["reach_black"])
+
+
+def test_only_scratch_with_shaping_keeps_the_shaping_term():
+    """The paper's protocol: the transferred starts fine-tune on the task's cost alone."""
+    config = GPSConfig(shaping=True)
+    shaping = [start for start in FINETUNE_STARTS if start_config(config, start).shaping]
+    assert shaping == ["scratch_shaping"]
+    from_policy = [start for start in FINETUNE_STARTS if start_config(config, start).init_from_policy]
+    assert from_policy == ["composed", "wrong_task"]
+    assert not start_config(GPSConfig(shaping=False), "scratch_shaping").shaping
+    with pytest.raises(ValueError, match="valid starts: composed, wrong_task"):
+        start_config(config, "pretrained")
 
 
 def test_finetune_gives_one_curve_per_start_from_before_training(bank, env, tmp_path):

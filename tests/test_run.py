@@ -180,6 +180,8 @@ def test_a_killed_run_resumes_from_its_last_checkpoint_and_loses_nothing(tmp_pat
     assert history == json.loads((tiny_run[0] / "history.json").read_text())
     resumed_results = json.loads((tmp_path / "results.json").read_text())
     assert resumed_results["methods"] == json.loads((tiny_run[0] / "results.json").read_text())["methods"]
+    # the training time counts the killed part's iterations too
+    assert resumed_results["seconds"]["train"] >= float(before.trainer["seconds"]) > 0
 
 
 def test_an_existing_run_is_never_overwritten_nor_resumed_under_another_config(tmp_path, tiny_run):

@@ -10,9 +10,9 @@ the task's ``success_distance``.  Two baselines must fail where the composition 
 * ``wrong_task``: the right robot module with each other task module (reported one by one,
   and the best of them, i.e. the lowest mean distance).
 
-:func:`finetune` runs GPS on the held-out world from the composed modules, the wrong task
-module, and from scratch with and without the cost's shaping term, and records the neural
-network policy's test distance after every iteration.
+:func:`finetune` runs GPS on the held-out world from the composed modules and the wrong task
+module (both without the cost's shaping term, as in the paper), and from scratch with and
+without it, and records the neural network policy's test distance after every iteration.
 
 Examples:
     >>> from modnet.bank import ModuleBank
@@ -52,6 +52,7 @@ __all__ = [
     "evaluation_env",
     "finetune",
     "rollout",
+    "start_config",
     "score",
     "zero_shot",
 ]
@@ -282,6 +283,23 @@ class FineTuning:
     samples: dict[str, dict[str, int]]
 
 
+def start_config(config: GPSConfig, start: str) -> GPSConfig:
+    """The GPS options of one fine-tuning start (the paper's section V-B protocol).
+
+    Only ``scratch_shaping`` keeps the cost's shaping term (when ``config.shaping``): the
+    transferred starts must learn from the task's cost alone, which is the paper's point.
+    ``composed`` and ``wrong_task`` sample their first iteration from the network and start
+    the controllers from its linearisation (``init_from_policy``).
+    """
+    if start not in FINETUNE_STARTS:
+        raise ValueError(f"unknown fine-tuning start {start!r}; valid starts: {', '.join(FINETUNE_STARTS)}")
+    return replace(
+        config,
+        init_from_policy=start in ("composed", "wrong_task"),
+        shaping=config.shaping and start == "scratch_shaping",
+    )
+
+
 def finetune(
     bank_dir: str | Path,
     robot: str,
@@ -299,9 +317,8 @@ def finetune(
 
     Starts: ``composed`` (the saved bank as is), ``wrong_task`` (``wrong_task``'s module in
     the held-out task's place), ``scratch_shaping`` and ``scratch_no_shaping`` (a freshly
-    initialised bank, the cost with or without its shaping term).  The first two sample
-    their first iteration from the network (``init_from_policy``); all use ``config``'s
-    seeds.  Returns the :class:`FineTuning` curves ``{start: [mean test distance after 0, 1,
+    initialised bank); see :func:`start_config` for each one's cost and first samples.  All
+    use ``config``'s seeds.  Returns the :class:`FineTuning` curves ``{start: [mean test distance after 0, 1,
     ..., iterations iterations]}`` and each start's samples; ``wrong_task`` is left out when
     there is no wrong task module (None).  ``progress(start, iteration, distance)`` is called
     after each iteration.
@@ -312,12 +329,7 @@ def finetune(
         if start == "wrong_task" and wrong_task is None:
             continue
         bank = _start_bank(bank_dir, start, robot, task, wrong_task, config.seed)
-        run = replace(
-            config,
-            init_from_policy=start in ("composed", "wrong_task"),
-            shaping=config.shaping and start != "scratch_no_shaping",
-        )
-        trainer = GPSTrainer(bank, [(robot, task)], run, pixels=pixels)
+        trainer = GPSTrainer(bank, [(robot, task)], start_config(config, start), pixels=pixels)
         curve = [score(bank, robot, task, env).mean]
         for iteration in range(iterations):
             trainer.step()

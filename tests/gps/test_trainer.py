@@ -81,7 +81,10 @@ def test_checkpoint_state_resumes_exactly():
     resumed = trainer_for(worlds=GRID[:1], algo="badmm")
     resumed.load_state_dict(state)
     assert resumed.iteration == 1 and resumed.history == original.history[:1]
+    first = float(state["seconds"])
+    assert resumed.seconds == first > 0  # the wall time of the iteration before the save
     assert resumed.step() == expected
+    assert resumed.seconds > first
     with pytest.raises(ValueError, match="checkpoint trains worlds"):
         trainer_for(worlds=GRID[1:2]).load_state_dict(state)
 

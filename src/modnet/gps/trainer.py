@@ -182,6 +182,7 @@ class GPSTrainer:
         self.bank = bank
         self.pixels = pixels
         self.iteration = 0
+        self.seconds = 0.0  # wall time of every iteration so far, across resumes
         self.timings: dict[str, float] = defaultdict(float)
         self.states = {state.name: state for state in map(lambda w: self._init_world(*w), worlds)}
         self.loss = PolicyRegressionLoss(bank)
@@ -243,6 +244,7 @@ class GPSTrainer:
     # --- one iteration ------------------------------------------------------------------------
     def step(self) -> dict[str, dict[str, float]]:
         """One GPS iteration over all worlds; returns per-world diagnostics."""
+        start = time.perf_counter()
         states = list(self.states.values())
         from_policy = self.iteration == 0 and self.config.init_from_policy
         for state in states:
@@ -265,6 +267,7 @@ class GPSTrainer:
         diagnostics = {s.name: self._diagnose(s) for s in states}
         self.history.append(diagnostics)
         self.iteration += 1
+        self.seconds += time.perf_counter() - start
         return diagnostics
 
     def _composed(self, state: WorldState):
@@ -505,6 +508,7 @@ class GPSTrainer:
         ``torch.load(..., weights_only=True)``."""
         return {
             "iteration": self.iteration,
+            "seconds": self.seconds,
             "bank": self.bank.state_dict(),
             "optimizer": self.optimizer.state_dict(),
             "torch_rng": torch.get_rng_state(),
@@ -522,6 +526,7 @@ class GPSTrainer:
         self.optimizer.load_state_dict(state["optimizer"])
         torch.set_rng_state(state["torch_rng"])
         self.iteration = int(state["iteration"])
+        self.seconds = float(state["seconds"])
         self.history = list(state["history"])
         for name, world_state in state["worlds"].items():
             _load_world_state(self.states[name], world_state)
