@@ -7,7 +7,8 @@
     # the same held-out world trained by BADMM and by MDGPS
     python benchmarks/publish_results.py algorithms BADMM_DIR MDGPS_DIR --experiment badmm_vs_mdgps
 
-Each writes ``docs/results/<experiment>.json`` (and, for a sweep, ``docs/<experiment>.png``)
+Each writes ``docs/results/<experiment>.json`` (and, for a sweep, the heatmap
+``docs/<experiment>.png``; for a fine-tuning run, its curves ``docs/<experiment>_finetune.png``)
 from the jobs' own ``results.json`` files, with the command that produced them (read from
 Hydra's ``.hydra/overrides.yaml``), the environment samples and the wall time, and the
 paper's numbers where the paper has that experiment.  The last line is the written JSON.
@@ -77,7 +78,7 @@ def _round(x: float) -> float:
     return round(float(x), 4)
 
 
-def zero_shot(run_dir: Path, experiment: str) -> dict:
+def zero_shot(run_dir: Path, experiment: str, docs: Path = DOCS) -> dict:
     results = json.loads((run_dir / "results.json").read_text())
     methods = results["methods"]
     wrong = methods["wrong_task"]  # None where no other task module reads this world's task state
@@ -101,7 +102,7 @@ def zero_shot(run_dir: Path, experiment: str) -> dict:
         "means": {name: _round(methods[name]["mean"]) for name in names},
         "success_rate": {name: methods[name]["success_rate"] for name in names},
         "samples": results["samples"],
-        "wall_s": sum(results["seconds"].values()),
+        "wall_s": round(sum(results["seconds"].values()), 1),
     }
     paper = PAPER_COUNTERPART.get(results["universe"], results["universe"])
     if paper in PAPER:
@@ -110,6 +111,8 @@ def zero_shot(run_dir: Path, experiment: str) -> dict:
         out["extended"] = _extended(results)
     if "finetune" in results:
         out["finetune"] = finetuning(results)
+        docs.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(run_dir / "finetune.png", docs / f"{experiment}_finetune.png")
     return out
 
 
@@ -162,7 +165,7 @@ def lowo(sweep_dir: Path, experiment: str, docs: Path = DOCS) -> dict:
                     and (not m["wrong_task"] or m["composed"]["mean"] < m["wrong_task"]["mean"])
                 ),
                 "samples": r["samples"],
-                "wall_s": sum(r["seconds"].values()),
+                "wall_s": round(sum(r["seconds"].values()), 1),
             }
         )
     heatmap = collect(sweep_dir)
@@ -185,7 +188,7 @@ def lowo(sweep_dir: Path, experiment: str, docs: Path = DOCS) -> dict:
         "composed_mean_over_worlds": _round(composed.mean()),
         "figure": figure.name,
         "samples": {k: sum(j["samples"][k] for j in jobs) for k in ("trajectories", "env_steps")},
-        "wall_s": sum(j["wall_s"] for j in jobs),
+        "wall_s": round(sum(j["wall_s"] for j in jobs), 1),
     }
 
 
@@ -210,7 +213,7 @@ def algorithms(run_dirs: list[Path], experiment: str) -> dict:
                 # the training worlds' controller samples in the last iteration
                 "final_sample_distance": _round(np.mean([w["distance"] for w in last_iteration(run_dir)])),
                 "samples": r["samples"],
-                "wall_s": sum(r["seconds"].values()),
+                "wall_s": round(sum(r["seconds"].values()), 1),
             }
         )
     return {"experiment": experiment, "runs": runs}
@@ -224,7 +227,7 @@ def main() -> None:
     parser.add_argument("--docs", type=Path, default=DOCS, help="the docs directory to write into")
     args = parser.parse_args()
     if args.kind == "zero-shot":
-        data = zero_shot(args.paths[0], args.experiment)
+        data = zero_shot(args.paths[0], args.experiment, args.docs)
     elif args.kind == "lowo":
         data = lowo(args.paths[0], args.experiment, args.docs)
     else:

@@ -131,6 +131,7 @@ def test_published_fine_tuning_has_curves_iterations_to_success_and_samples(tiny
         below = [i for i, d in enumerate(curve) if d < results["success_distance"]]
         assert reached == (below[0] if below else None)
     assert tuning["samples"] == results["finetune_samples"]
+    assert (tmp_path / "tiny_finetune_finetune.png").read_bytes() == (run_dir / "finetune.png").read_bytes()
 
 
 def test_the_saved_bank_knows_what_each_module_was_trained_on(tiny_run):
