@@ -52,8 +52,8 @@ __all__ = [
     "evaluation_env",
     "finetune",
     "rollout",
-    "start_config",
     "score",
+    "start_config",
     "zero_shot",
 ]
 
@@ -318,10 +318,10 @@ def finetune(
     Starts: ``composed`` (the saved bank as is), ``wrong_task`` (``wrong_task``'s module in
     the held-out task's place), ``scratch_shaping`` and ``scratch_no_shaping`` (a freshly
     initialised bank); see :func:`start_config` for each one's cost and first samples.  All
-    use ``config``'s seeds.  Returns the :class:`FineTuning` curves ``{start: [mean test distance after 0, 1,
-    ..., iterations iterations]}`` and each start's samples; ``wrong_task`` is left out when
-    there is no wrong task module (None).  ``progress(start, iteration, distance)`` is called
-    after each iteration.
+    use ``config``'s seeds.  Returns the :class:`FineTuning` curves ``{start: [mean test
+    distance after 0, 1, ..., iterations iterations]}`` and each start's samples;
+    ``wrong_task`` is left out when there is no wrong task module (None).
+    ``progress(start, iteration, distance)`` is called after each iteration.
     """
     bank_dir = Path(bank_dir)
     result = FineTuning(curves={}, samples={})

@@ -526,7 +526,7 @@ class GPSTrainer:
         self.optimizer.load_state_dict(state["optimizer"])
         torch.set_rng_state(state["torch_rng"])
         self.iteration = int(state["iteration"])
-        self.seconds = float(state["seconds"])
+        self.seconds = float(state.get("seconds", 0.0))  # checkpoints before it was kept: unknown
         self.history = list(state["history"])
         for name, world_state in state["worlds"].items():
             _load_world_state(self.states[name], world_state)
