@@ -78,6 +78,11 @@ def _round(x: float) -> float:
     return round(float(x), 4)
 
 
+def _wall_s(results: dict) -> float:
+    """The seconds a job measured (training, evaluation, fine-tuning), summed."""
+    return round(sum(results["seconds"].values()), 1)
+
+
 def zero_shot(run_dir: Path, experiment: str, docs: Path = DOCS) -> dict:
     results = json.loads((run_dir / "results.json").read_text())
     methods = results["methods"]
@@ -102,7 +107,7 @@ def zero_shot(run_dir: Path, experiment: str, docs: Path = DOCS) -> dict:
         "means": {name: _round(methods[name]["mean"]) for name in names},
         "success_rate": {name: methods[name]["success_rate"] for name in names},
         "samples": results["samples"],
-        "wall_s": round(sum(results["seconds"].values()), 1),
+        "wall_s": _wall_s(results),
     }
     paper = PAPER_COUNTERPART.get(results["universe"], results["universe"])
     if paper in PAPER:
@@ -165,7 +170,7 @@ def lowo(sweep_dir: Path, experiment: str, docs: Path = DOCS) -> dict:
                     and (not m["wrong_task"] or m["composed"]["mean"] < m["wrong_task"]["mean"])
                 ),
                 "samples": r["samples"],
-                "wall_s": round(sum(r["seconds"].values()), 1),
+                "wall_s": _wall_s(r),
             }
         )
     heatmap = collect(sweep_dir)
@@ -213,7 +218,7 @@ def algorithms(run_dirs: list[Path], experiment: str) -> dict:
                 # the training worlds' controller samples in the last iteration
                 "final_sample_distance": _round(np.mean([w["distance"] for w in last_iteration(run_dir)])),
                 "samples": r["samples"],
-                "wall_s": round(sum(r["seconds"].values()), 1),
+                "wall_s": _wall_s(r),
             }
         )
     return {"experiment": experiment, "runs": runs}

@@ -87,6 +87,11 @@ def test_checkpoint_state_resumes_exactly():
     assert resumed.seconds > first
     with pytest.raises(ValueError, match="checkpoint trains worlds"):
         trainer_for(worlds=GRID[1:2]).load_state_dict(state)
+    # a checkpoint from before the trainer kept its wall time still resumes, from 0 s
+    older = {k: v for k, v in state.items() if k != "seconds"}
+    legacy = trainer_for(worlds=GRID[:1], algo="badmm")
+    legacy.load_state_dict(older)
+    assert legacy.iteration == 1 and legacy.seconds == 0.0
 
 
 def test_planted_nan_names_world_condition_and_iteration(monkeypatch):
