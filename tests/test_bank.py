@@ -38,6 +38,7 @@ def observations(world, batch=(6,), seed=0, pixels=False) -> TensorDict:
     )
     if pixels:
         td["task", "pixels"] = torch.randint(0, 256, (*batch, 64, 80, 3), generator=g, dtype=torch.uint8)
+        td["task", "ee"] = td["task", "state"][..., :4]
     return td
 
 
@@ -73,8 +74,11 @@ def test_default_layout_is_the_papers():
     assert bank.get("robot", "four_link").log_std.shape == (4,)
     vision = ModuleBank.build(["four_link"], ["reach_black"], pixels=True)
     task = vision.get("task", "reach_black")
-    assert task.in_keys == [("task", "state"), ("task", "pixels")]
-    assert linear_shapes(task) == [(40 + 12, 80), (80, 12)]  # 20 feature points (x, y) + state
+    # the image and the end-effector (position, velocity), never the block positions
+    assert task.in_keys == [("task", "ee"), ("task", "pixels")]
+    assert linear_shapes(task) == [(40 + 4, 80), (80, 12)]  # 20 feature points (x, y) + end-effector
+    convs = [m for m in task.modules() if isinstance(m, torch.nn.Conv2d)]
+    assert [(c.out_channels, c.kernel_size, c.stride) for c in convs] == [(10, (3, 3), (2, 2)), (20, (3, 3), (1, 1))]
 
 
 def test_vision_bank_runs_in_a_pixel_env():
@@ -82,6 +86,18 @@ def test_vision_bank_runs_in_a_pixel_env():
     env = make_env("three_link", "reach_red", num_envs=2, pixels=True, horizon=3)
     td = env.rollout(3, bank.compose("three_link", "reach_red"))
     assert td["interface", "task"].shape == (2, 3, 12) and td["action"].shape == (2, 3, 3)
+
+
+def test_a_vision_policy_sees_the_targets_only_through_its_pixels():
+    """Moving the blocks in the state (not in the image) leaves the vision policy's action as it was."""
+    bank = ModuleBank.build(["three_link"], ["reach_red"], pixels=True, dropout=0.0)
+    policy = bank.compose("three_link", "reach_red")
+    td = observations(("three_link", "reach_red"), pixels=True)
+    moved = td.clone()
+    moved["task", "state"][..., 4:] += 1.0  # every block, not the end-effector
+    torch.testing.assert_close(mean_action(policy, td), mean_action(policy, moved), rtol=0, atol=0)
+    moved["task", "ee"] = moved["task", "ee"] + 1.0
+    assert not torch.equal(mean_action(policy, td), mean_action(policy, moved))
 
 
 def test_config_options_and_their_errors():

@@ -133,6 +133,16 @@ def test_pixels_show_the_named_blocks():
         assert (counts >= 4).all(), f"{colour} block not visible: {counts.tolist()} pixels"
 
 
+def test_a_pixel_env_gives_the_end_effector_apart_from_the_state():
+    env = modnet.make_env("four_link", "push", num_envs=2, pixels=True, horizon=3)
+    td = env.rollout(3)
+    task = env.world.task
+    state = td["next", "task", "state"]
+    expected = torch.cat([task.part(state, "ee", "pos"), task.part(state, "ee", "vel")], -1)
+    torch.testing.assert_close(td["next", "task", "ee"], expected, rtol=0, atol=0)
+    assert env.observation_spec["task", "ee"].shape == (2, 4)
+
+
 def test_pixels_follow_the_block_position():
     """The red block's pixel centroid moves the way its (x, y) does (camera looks down, +y up)."""
     env = modnet.make_env("three_link", "reach_red", num_envs=4, pixels=True)

@@ -75,6 +75,24 @@ def test_pixel_encoder_reads_uint8_hwc_images_at_the_right_place():
     torch.testing.assert_close(points, expected, atol=1e-4, rtol=0)
 
 
+def test_a_strided_first_conv_keeps_the_image_coordinates():
+    """Stride 2 reads every other pixel: a 2x2 red patch is found where it is in the full image."""
+    encoder = PixelEncoder(channels=(1, 1), kernel_size=1, strides=(2, 1))
+    with torch.no_grad():
+        for conv in encoder.convs[::2]:
+            conv.weight.zero_()
+            conv.bias.zero_()
+        encoder.convs[0].weight[0, 0] = 1.0  # red
+        encoder.convs[2].weight[0, 0] = 40.0
+    images = torch.zeros(1, *PIXELS_SHAPE, dtype=torch.uint8)
+    images[0, 20:22, 60:62, 0] = 255
+    height, width = PIXELS_SHAPE[:2]
+    expected = torch.tensor([[60 / width - 0.5, 20 / height - 0.5]])
+    torch.testing.assert_close(encoder(images), expected, atol=1e-4, rtol=0)
+    with pytest.raises(ValueError, match=r"conv_strides needs one stride per convolution \(2\), got \(2,\)"):
+        ModuleArch(factor="task", head="interface", out_dim=4, pixels=("task", "pixels"), conv_strides=(2,))
+
+
 def test_pixel_encoder_keeps_leading_batch_dims():
     encoder = PixelEncoder(channels=(10, 20), kernel_size=3)
     out = encoder(torch.randint(0, 256, (2, 3, *PIXELS_SHAPE), dtype=torch.uint8))

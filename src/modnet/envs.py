@@ -21,7 +21,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
-from modnet.specs import PIXELS_SHAPE, TORQUE_LIMIT
+from modnet.specs import EE_DIM, PIXELS_SHAPE, TORQUE_LIMIT
 from modnet.worlds import CONDITION_SETS, World, get_world
 
 _OPEN_RENDERERS: weakref.WeakSet = weakref.WeakSet()
@@ -57,8 +57,10 @@ class WorldEnv(EnvBase):
     ``T`` (or ``horizon``) control steps, then ``truncated`` and ``done`` are set.
 
     Keys: ``("robot", "state")`` joint angles and velocities; ``("task", "state")``
-    end-effector and object/target/goal positions (and velocities); ``("task", "pixels")``
-    uint8 ``64x80x3`` from the top camera when ``pixels=True``; ``"condition"``;
+    end-effector and object/target/goal positions (and velocities); when ``pixels=True``,
+    ``("task", "pixels")`` uint8 ``64x80x3`` from the top camera and ``("task", "ee")``, the
+    end-effector's position and velocity (what a vision policy may read besides the image:
+    the state of the targets and objects is for the trajectory optimiser only); ``"condition"``;
     ``"step_count"``; ``"action"`` (torques, clipped to +-2); ``"reward"`` = -cost of the
     reached state and the action.
 
@@ -109,6 +111,8 @@ class WorldEnv(EnvBase):
         self._picture_renderers: dict[tuple[int, int], mujoco.Renderer] = {}  # render_frames' sizes
         self._frames = np.zeros((num_envs, *PIXELS_SHAPE), dtype=np.uint8) if pixels else None
         self._camera = "top"
+        task_def = self.world.task
+        self._ee_index = torch.as_tensor(np.r_[task_def.slot("ee", "pos"), task_def.slot("ee", "vel")])
         # mujoco releases the GIL while stepping: split the copies over a few threads
         threads = num_threads or min(2, os.cpu_count() or 1, max(1, num_envs // 8))
         self._chunks = np.array_split(np.arange(num_envs), threads)
@@ -124,6 +128,7 @@ class WorldEnv(EnvBase):
         task_spec = Composite(state=Unbounded((*B, task.state_dim)), shape=B)
         if self.pixels:
             task_spec["pixels"] = Bounded(0, 255, (*B, *PIXELS_SHAPE), dtype=torch.uint8)
+            task_spec["ee"] = Unbounded((*B, EE_DIM))
         self.observation_spec = Composite(
             robot=Composite(state=Unbounded((*B, robot.state_dim)), shape=B),
             task=task_spec,
@@ -146,6 +151,7 @@ class WorldEnv(EnvBase):
         task = {"state": torch.as_tensor(task_state, dtype=torch.float32)}
         if self.pixels:
             task["pixels"] = torch.from_numpy(self._frames.copy())
+            task["ee"] = task["state"][:, self._ee_index]
         return TensorDict(
             {
                 "robot": {"state": torch.as_tensor(robot_state, dtype=torch.float32)},

@@ -25,6 +25,9 @@ import numpy as np
 import torch
 
 PIXELS_SHAPE = (64, 80, 3)  # (H, W, C), as in the paper's 80x64 RGB images
+#: what a vision policy reads of the task state: the end-effector's position and velocity
+#: (the paper feeds the end-effector to the task module; targets and objects come from pixels)
+EE_DIM = 4
 CONTROL_SUBSTEPS = 5  # physics dt 0.01, control dt 0.05
 TORQUE_LIMIT = 2.0
 

@@ -29,6 +29,8 @@ from modnet.specs import TORQUE_LIMIT
 from modnet.worlds import get_world
 
 STATE_KEYS = (("robot", "state"), ("task", "state"))  # x = [robot_state, task_state]
+#: every key a policy may read (a vision policy: the image and the end-effector, not the state)
+POLICY_KEYS = (*STATE_KEYS, ("task", "ee"), ("task", "pixels"))
 
 
 @dataclass
@@ -128,5 +130,5 @@ class WorldSampler:
             X=state_of(td),
             U=U,
             distance=distance,
-            obs=td.select(*STATE_KEYS, ("task", "pixels"), "condition", "step_count", strict=False),
+            obs=td.select(*POLICY_KEYS, "condition", "step_count", strict=False),
         )

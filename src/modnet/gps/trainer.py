@@ -52,7 +52,7 @@ from modnet.gps.errors import NumericalError, check_finite
 from modnet.gps.loss import PolicyRegressionLoss
 from modnet.gps.lqr import LQRConfig, adapt_step_mult, kl_divergence, laplace_cost, lqr_forward
 from modnet.gps.lqr import solve_kl_constrained_lqr as c_step
-from modnet.gps.sampling import STATE_KEYS, Samples, WorldSampler, state_of
+from modnet.gps.sampling import POLICY_KEYS, STATE_KEYS, Samples, WorldSampler, state_of
 from modnet.worlds import CONDITION_SETS, NUM_FIXED_CONDITIONS
 
 PHASES = ("sampling", "cost", "dynamics", "lqr", "s_step")
@@ -435,9 +435,7 @@ class GPSTrainer:
         weights = weights * weights.numel() / weights.sum()  # mean 1 ...
         median = weights[weights > 1e-2].median()
         weights = weights.clamp_max(2 * median) / median  # ... at most twice the robust median
-        data = state.samples.obs.select(
-            *STATE_KEYS, ("task", "pixels"), strict=False
-        )  # a new TD, shared leaves
+        data = state.samples.obs.select(*POLICY_KEYS, strict=False)  # a new TD, shared leaves
         data["target_action"] = target.to(torch.float32)
         data["precision"] = precision.to(torch.float32)
         data["weight"] = weights.to(torch.float32)
