@@ -49,7 +49,8 @@ def batch_of(world: World, rows: int, pixels: bool, generator: torch.Generator) 
     )
     if pixels:
         td["task", "ee"] = rand(EE_DIM)
-        td["task", "pixels"] = torch.randint(0, 256, (rows, *PIXELS_SHAPE), generator=generator, dtype=torch.uint8)
+        shape = (rows, *PIXELS_SHAPE)
+        td["task", "pixels"] = torch.randint(0, 256, shape, generator=generator, dtype=torch.uint8)
     return td
 
 

@@ -78,7 +78,8 @@ def test_default_layout_is_the_papers():
     assert task.in_keys == [("task", "ee"), ("task", "pixels")]
     assert linear_shapes(task) == [(40 + 4, 80), (80, 12)]  # 20 feature points (x, y) + end-effector
     convs = [m for m in task.modules() if isinstance(m, torch.nn.Conv2d)]
-    assert [(c.out_channels, c.kernel_size, c.stride) for c in convs] == [(10, (3, 3), (2, 2)), (20, (3, 3), (1, 1))]
+    layout = [(c.out_channels, c.kernel_size, c.stride) for c in convs]
+    assert layout == [(10, (3, 3), (2, 2)), (20, (3, 3), (1, 1))]
 
 
 def test_vision_bank_runs_in_a_pixel_env():

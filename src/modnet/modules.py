@@ -177,7 +177,8 @@ class ModuleArch:
         set_("conv_strides", check_positive_ints("conv_strides", self.conv_strides))
         if self.conv_strides and len(self.conv_strides) != len(self.conv_channels):
             raise ValueError(
-                f"conv_strides needs one stride per convolution ({len(self.conv_channels)}), got {self.conv_strides}"
+                f"conv_strides needs one stride per convolution ({len(self.conv_channels)}), "
+                f"got {self.conv_strides}"
             )
         if not isinstance(self.kernel_size, int) or self.kernel_size < 1 or self.kernel_size % 2 == 0:
             raise ValueError(f"kernel_size must be a positive odd integer, got {self.kernel_size!r}")

@@ -5,6 +5,7 @@ import io
 import pytest
 import torch
 
+import modnet.gps.trainer as trainer_module
 from modnet.bank import ModuleBank
 from modnet.gps.errors import NumericalError
 from modnet.gps.trainer import GPSConfig, GPSTrainer
@@ -48,7 +49,7 @@ def test_multi_world_training_lowers_every_worlds_cost(algo):
     assert trainer.samples == {"trajectories": 144, "env_steps": 144 * 20}
 
 
-def test_a_pixel_bank_trains_its_conv_task_modules_from_rendered_samples():
+def test_a_pixel_bank_trains_its_conv_task_modules_from_rendered_samples(monkeypatch):
     """From images (the paper's colour reach): the samples render, the S-step regresses on them."""
     bank = ModuleBank.build(["three_link"], ["reach_red", "reach_black"], pixels=True, seed=0)
     worlds = [("three_link", "reach_red"), ("three_link", "reach_black")]
@@ -61,6 +62,17 @@ def test_a_pixel_bank_trains_its_conv_task_modules_from_rendered_samples():
     pixels = trainer.states["three_link/reach_red"].samples.obs["task", "pixels"]
     assert pixels.dtype == torch.uint8 and pixels.shape[-3:] == (64, 80, 3) and pixels.float().std() > 10
     assert not any(torch.equal(p, b) for p, b in zip(conv.parameters(), before, strict=True))
+
+    # the policy at every sample, a condition at a time (bounded memory), is the one-pass result
+    monkeypatch.setattr(trainer_module, "PIXEL_ROWS_PER_PASS", 1)
+    states = list(trainer.states.values())
+    trainer.bank.eval()
+    with torch.no_grad():
+        chunked = trainer._forward_samples(states)
+        whole = trainer.bank.forward_worlds({s.name: s.samples.obs for s in states})
+    for part, one_pass in zip(chunked, whole.values(), strict=True):
+        assert part.shape == one_pass.shape == (4, 2, 8)
+        torch.testing.assert_close(part["loc"], one_pass["loc"])
 
 
 def test_seeded_runs_are_reproducible():

@@ -58,6 +58,10 @@ from modnet.worlds import CONDITION_SETS, NUM_FIXED_CONDITIONS
 PHASES = ("sampling", "cost", "dynamics", "lqr", "s_step")
 
 
+#: images per world in one no-grad pass of a vision bank over an iteration's samples
+PIXEL_ROWS_PER_PASS = 512
+
+
 @dataclass
 class GPSConfig:
     """Options of a GPS run (defaults: GPS code and the paper, sized for a 2-core laptop)."""
@@ -314,9 +318,9 @@ class GPSTrainer:
     def _policy_outputs(self, states: Sequence[WorldState]) -> None:
         """The composed policies' mean actions and covariances at every world's samples."""
         self.bank.eval()
-        out = self.bank.forward_worlds({s.name: s.samples.obs for s in states})
+        out = self._forward_samples(states)
         self.bank.train()
-        for state, result in zip(states, out.values(), strict=True):
+        for state, result in zip(states, out, strict=True):
             mean = result["loc"].to(torch.float64)
             check_finite("policy action", mean, world=state.name, iteration=self.iteration)
             state.policy_mean = mean
@@ -338,6 +342,19 @@ class GPSTrainer:
                     world=state.name,
                     iteration=self.iteration,
                 )
+
+    def _forward_samples(self, states: Sequence[WorldState]) -> list[TensorDictBase]:
+        """The bank's outputs at every world's samples ``[M, N, T]``, in one
+        :meth:`~modnet.bank.ModuleBank.forward_worlds` pass per few conditions when the bank
+        reads images (their activations for a whole iteration's samples would take gigabytes)."""
+        obs = {s.name: s.samples.obs for s in states}
+        M, N, T = states[0].samples.obs.shape  # the same M, N for every world (one GPSConfig)
+        chunk = max(1, PIXEL_ROWS_PER_PASS // (N * T)) if self.pixels else M
+        passes = [
+            list(self.bank.forward_worlds({name: o[i : i + chunk] for name, o in obs.items()}).values())
+            for i in range(0, M, chunk)
+        ]
+        return [torch.cat(parts) for parts in zip(*passes, strict=True)]
 
     def _adapt_step(self, state: WorldState) -> None:
         """Step-size rule from the improvement predicted by the last C-step vs the one sampled."""
