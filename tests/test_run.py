@@ -278,3 +278,20 @@ def test_checkpoints_hold_plain_data_only(tiny_run):
     assert done.returncode == 0
     payload = torch.load(run_dir / "checkpoint.pt", weights_only=True)  # would raise on any object
     assert payload["format"] == "modnet.checkpoint/1" and payload["trainer"]["iteration"] == ITERATIONS
+
+
+def test_score_bank_scores_every_world_and_agrees_with_the_zero_shot_table(tiny_run):
+    run_dir, done, _ = tiny_run
+    assert done.returncode == 0, done.stderr[-3000:]
+    scored = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "score_bank.py"), str(run_dir)],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    figures = json.loads(scored.stdout.splitlines()[-1])
+    results = json.loads((run_dir / "results.json").read_text())
+    assert set(figures["mean_distance"]) == {f"{r}/{t}" for r in results["robots"] for t in results["tasks"]}
+    assert figures["held_out"] == pytest.approx(results["methods"]["composed"]["mean"], abs=1e-4)
+    training = [figures["mean_distance"][w] for w in results["training_worlds"]]
+    assert figures["training_worlds"]["mean"] == pytest.approx(sum(training) / len(training), abs=1e-4)
