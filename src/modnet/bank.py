@@ -110,7 +110,7 @@ class BankConfig:
         conv_channels: filters of the vision task module's convolutions (10, 20).
         kernel_size: their square kernel (3).
         conv_strides: their strides (2, 1): the first convolution halves the 64x80 image, which
-            makes an S-step five times cheaper on a CPU (``benchmarks/pixel_sgd.py``).
+            makes an S-step SGD step 7 times cheaper on a CPU (``benchmarks/pixel_sgd.py``).
         init_log_std: initial log-std of every action dimension (``log sqrt(0.1)``: GPS's
             initial policy variance 0.1).
 
