@@ -7,7 +7,7 @@ of the colour-reach grid (``batch_per_world`` rows each), backward, Adam.  Timed
 alternation so a shared machine's load hits all alike:
 
 * ``state``: the bank of ``color_reach_state`` (the reference: what the state experiments pay);
-* ``pixels_stride1``: the vision bank with both convolutions at stride 1 (modnet before 0.2);
+* ``pixels_stride1``: the vision bank with both convolutions at stride 1 (the layout before stride 2);
 * ``pixels``: the vision bank as built now (``BankConfig.conv_strides``, first conv stride 2).
 
 Prints progress, then ONE JSON object on its last line with the medians and the ratios.

@@ -30,6 +30,9 @@ def main() -> None:
     parser.add_argument("--num-conditions", type=int, default=None)
     args = parser.parse_args()
 
+    missing = [name for name in ("results.json", "bank/manifest.json") if not (args.run_dir / name).exists()]
+    if missing:
+        parser.error(f"{args.run_dir} is not a finished run.py run directory: no {', '.join(missing)}")
     results = json.loads((args.run_dir / "results.json").read_text())
     universe = get_universe(results["universe"])
     holdout = results["holdout"]

@@ -348,8 +348,9 @@ class GPSTrainer:
         :meth:`~modnet.bank.ModuleBank.forward_worlds` pass per few conditions when the bank
         reads images (their activations for a whole iteration's samples would take gigabytes)."""
         obs = {s.name: s.samples.obs for s in states}
-        M, N, T = states[0].samples.obs.shape  # the same M, N for every world (one GPSConfig)
-        chunk = max(1, PIXEL_ROWS_PER_PASS // (N * T)) if self.pixels else M
+        M = states[0].samples.obs.shape[0]  # one GPSConfig: every world has M conditions
+        rows = max(o.shape[1:].numel() for o in obs.values())  # N x T of the longest horizon
+        chunk = max(1, PIXEL_ROWS_PER_PASS // rows) if self.pixels else M
         passes = [
             list(self.bank.forward_worlds({name: o[i : i + chunk] for name, o in obs.items()}).values())
             for i in range(0, M, chunk)
