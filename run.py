@@ -23,6 +23,7 @@ os.environ.setdefault("WANDB_MODE", "offline")  # nothing leaves the machine unl
 os.environ.setdefault("WANDB_SILENT", "true")
 
 import dataclasses  # noqa: E402
+import json  # noqa: E402
 import logging  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
@@ -43,10 +44,12 @@ from modnet.envs import WorldEnv  # noqa: E402
 from modnet.evaluate import FineTuning, ZeroShot, evaluation_env, finetune, zero_shot  # noqa: E402
 from modnet.gps.trainer import GPSTrainer  # noqa: E402
 from modnet.loggers import RunLogger  # noqa: E402
+from modnet.pretrain import pretrain_vision  # noqa: E402
 from modnet.universes import Split, Universe, UniverseError, get_universe, world_name  # noqa: E402
 from modnet.worlds import get_world  # noqa: E402
 
 CONF = Path(__file__).resolve().parent / "conf"
+PRETRAIN_REPORT = "pretrain.json"  # the vision pretraining's figures, kept for a resumed run
 register_configs()
 
 
@@ -64,6 +67,7 @@ def run_identity(run: RunConfig, universe: Universe, split: Split) -> dict:
             "seed": run.seed,
             "gps": dataclasses.asdict(run.gps_config()),
             "bank": run.bank_config().to_json(),
+            "pretrain": dataclasses.asdict(run.pretrain_config()),
         }
     )
 
@@ -202,6 +206,16 @@ def main(cfg: DictConfig) -> None:
             config=run.bank_config(),
             seed=run.seed,
         )
+        if resume_from is None and run.pretrain.images:  # a resumed bank has it in its weights
+            start = time.perf_counter()
+            pretrained = pretrain_vision(bank, split.training, run.pretrain_config())
+            report.write_json(run_dir / PRETRAIN_REPORT, pretrained)
+            seconds["pretrain"] = time.perf_counter() - start
+            for task, figures in pretrained.items():
+                print(
+                    f"pretrained {task}'s convolutions on {figures['images']} scenes: objects found "
+                    f"{figures['val_error']:.3f} m off (the mean position: {figures['baseline_error']:.3f} m)"
+                )
         trainer = GPSTrainer(bank, split.training, run.gps_config(), pixels=universe.pixels)
         if resume_from is not None:
             trainer.load_state_dict(resume_from.trainer)
@@ -223,6 +237,8 @@ def main(cfg: DictConfig) -> None:
         results, result = evaluate(run, universe, split, bank)
         results["iterations"] = trainer.iteration
         results["samples"] = trainer.samples
+        if (run_dir / PRETRAIN_REPORT).exists():
+            results["pretrain"] = json.loads((run_dir / PRETRAIN_REPORT).read_text())
         seconds["evaluate"] = time.perf_counter() - start
 
         # 5. optionally: GPS on the held-out world from four starts

@@ -93,6 +93,26 @@ def test_a_strided_first_conv_keeps_the_image_coordinates():
         ModuleArch(factor="task", head="interface", out_dim=4, pixels=("task", "pixels"), conv_strides=(2,))
 
 
+def test_a_sharper_spatial_softmax_is_part_of_the_architecture_and_old_manifests_default_to_1():
+    arch = ModuleArch(
+        factor="task", head="interface", out_dim=4, pixels=("task", "pixels"), softmax_temperature=0.05
+    )
+    assert BankModule(arch).module.pixels.points.temperature == 0.05
+    assert ModuleArch.from_json(arch.to_json()) == arch
+    old = arch.to_json()
+    del old["softmax_temperature"]  # a manifest written before the field existed
+    assert ModuleArch.from_json(old).softmax_temperature == 1.0
+    for bad in (0.0, -1.0, float("inf"), True):
+        with pytest.raises(ValueError, match="softmax_temperature must be"):
+            ModuleArch(
+                factor="task",
+                head="interface",
+                out_dim=4,
+                softmax_temperature=bad,
+                observations=((("task", "state"), 2),),
+            )
+
+
 def test_pixel_encoder_keeps_leading_batch_dims():
     encoder = PixelEncoder(channels=(10, 20), kernel_size=3)
     out = encoder(torch.randint(0, 256, (2, 3, *PIXELS_SHAPE), dtype=torch.uint8))

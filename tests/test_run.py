@@ -225,6 +225,8 @@ def test_a_corrupt_checkpoint_stops_the_run_with_one_message_and_stays(tmp_path)
         (["universe=colour"], "Could not find 'universe/colour'"),
         (["universe=tiny", "holdout=five_link/reach_red"], "'five_link/reach_red' is not in universe 'tiny'"),
         (["universe=tiny", "holdout=all"], "holdout=all is a leave-one-world-out sweep"),
+        (["universe=tiny", "pretrain.images=100"], "universe 'tiny' has none: use an image universe"),
+        (["universe=color_reach", "pretrain.epochs=0"], "pretrain: epochs must be a positive integer"),
     ],
 )
 def test_bad_configs_fail_in_seconds_with_one_clear_message(tmp_path, overrides, message):

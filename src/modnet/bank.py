@@ -111,6 +111,9 @@ class BankConfig:
         kernel_size: their square kernel (3).
         conv_strides: their strides (2, 1): the first convolution halves the 64x80 image, which
             makes an S-step SGD step 7 times cheaper on a CPU (``benchmarks/pixel_sgd.py``).
+        softmax_temperature: temperature of the vision task module's spatial softmax (1; the
+            image universes use 0.05, under which pose-regression pretraining finds every
+            block: :mod:`modnet.pretrain`).
         init_log_std: initial log-std of every action dimension (``log sqrt(0.1)``: GPS's
             initial policy variance 0.1).
 
@@ -133,6 +136,7 @@ class BankConfig:
     conv_channels: tuple[int, ...] = (10, 20)
     kernel_size: int = 3
     conv_strides: tuple[int, ...] = (2, 1)
+    softmax_temperature: float = 1.0
     init_log_std: float = -1.1512925464970228
 
     def __post_init__(self) -> None:
@@ -149,6 +153,7 @@ class BankConfig:
             "conv_channels": self.conv_channels,
             "kernel_size": self.kernel_size,
             "conv_strides": self.conv_strides,
+            "softmax_temperature": self.softmax_temperature,
         }
 
     def task_arch(self, task_state_dim: int, pixels: bool) -> ModuleArch:

@@ -34,6 +34,7 @@ from modnet.evaluate import FINETUNE_STARTS
 from modnet.gps.badmm import BADMMConfig
 from modnet.gps.dynamics import DynamicsPriorConfig
 from modnet.gps.trainer import GPSConfig
+from modnet.pretrain import PretrainConfig
 from modnet.universes import Split, Universe, get_universe
 from modnet.worlds import CONDITION_SETS, NUM_FIXED_CONDITIONS
 
@@ -43,6 +44,7 @@ __all__ = [
     "EvalConfig",
     "GPSSchema",
     "LoggerConfig",
+    "PretrainSchema",
     "RunConfig",
     "build",
     "register_configs",
@@ -144,6 +146,7 @@ GPSSchema = schema_of(
     extra=(("iterations", int, 10),),  # GPS iterations of the main training run
     exclude=("init_from_policy",),  # set by the fine-tuning driver only
 )
+PretrainSchema = schema_of(PretrainConfig, "PretrainSchema")
 BankSchema = schema_of(
     BankConfig,
     "BankSchema",
@@ -206,6 +209,8 @@ class RunConfig:
         seed: initialisation seed of the bank (``gps.seed`` follows it in ``conf/config.yaml``).
         resume: continue from the run directory's checkpoint.
         finetune: after the zero-shot evaluation, compare GPS fine-tuning from four starts.
+        pretrain: pose-regression pretraining of the vision task modules before GPS
+            (:class:`modnet.pretrain.PretrainConfig`; ``pretrain.images=0`` is off).
     """
 
     universe: str = dataclasses.MISSING  # type: ignore[assignment]
@@ -215,6 +220,7 @@ class RunConfig:
     finetune: bool = False
     gps: GPSSchema = field(default_factory=GPSSchema)  # type: ignore[valid-type]
     bank: BankSchema = field(default_factory=BankSchema)  # type: ignore[valid-type]
+    pretrain: PretrainSchema = field(default_factory=PretrainSchema)  # type: ignore[valid-type]
     eval: EvalConfig = field(default_factory=EvalConfig)
     logger: LoggerConfig = field(default_factory=LoggerConfig)
 
@@ -225,10 +231,14 @@ class RunConfig:
     def bank_config(self) -> BankConfig:
         return build(BankConfig, self.bank, "bank.")
 
+    def pretrain_config(self) -> PretrainConfig:
+        return build(PretrainConfig, self.pretrain, "pretrain.")
+
     def check(self) -> None:
         """Values no schema type can rule out; :class:`ConfigError` naming the key."""
         self.gps_config()
         self.bank_config()
+        self.pretrain_config()
         if self.bank.policy not in ("modular", "monolithic"):
             raise ConfigError(f"bank.policy must be 'modular' or 'monolithic', got {self.bank.policy!r}")
         if self.gps.iterations < 1:
@@ -264,6 +274,11 @@ def validate(run: RunConfig) -> tuple[Universe, Split]:
         )
     split = universe.split(run.holdout)
     run.check()
+    if run.pretrain.images and not universe.pixels:
+        raise ConfigError(
+            f"pretrain.images={run.pretrain.images} pretrains vision task modules, and universe "
+            f"{universe.name!r} has none: use an image universe or pretrain.images=0"
+        )
     return universe, split
 
 

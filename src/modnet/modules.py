@@ -151,6 +151,7 @@ class ModuleArch:
     conv_channels: tuple[int, ...] = (10, 20)
     kernel_size: int = 3
     conv_strides: tuple[int, ...] = ()  # one per convolution; () is stride 1 throughout
+    softmax_temperature: float = 1.0  # of the spatial softmax; lower is sharper
     dropout: float = 0.0
     interface_dropout: float = 0.0
     init_log_std: float = 0.0
@@ -184,6 +185,12 @@ class ModuleArch:
             raise ValueError(f"kernel_size must be a positive odd integer, got {self.kernel_size!r}")
         set_("dropout", check_dropout("dropout", self.dropout))
         set_("interface_dropout", check_dropout("interface_dropout", self.interface_dropout))
+        temperature = self.softmax_temperature
+        if isinstance(temperature, bool) or not isinstance(temperature, (int, float)):
+            raise ValueError(f"softmax_temperature must be a number, got {temperature!r}")
+        if not 0 < temperature < math.inf:
+            raise ValueError(f"softmax_temperature must be positive, got {temperature!r}")
+        set_("softmax_temperature", float(temperature))
         if not math.isfinite(self.init_log_std):
             raise ValueError(f"init_log_std must be finite, got {self.init_log_std!r}")
         keys = [interface_key(f) for f, _ in self.reads] + [k for k, _ in self.observations]
@@ -320,7 +327,10 @@ class PixelEncoder(nn.Module):
 
     Convolutions are "same"-padded so feature points keep the image's coordinates; a stride
     of 2 in the first one (as in Levine et al.'s visuomotor network) quarters the cost of
-    every layer after it.
+    every layer after it.  ``temperature`` divides the last maps before the softmax: at 1
+    a small object (a 4-pixel block) barely moves its channel's feature point until the
+    filters grow large, and a dark one (the black block) is not found at all within 40
+    epochs of pose regression; at 0.05 all four blocks are (``modnet.pretrain``).
 
     Examples:
         >>> encoder = PixelEncoder(channels=(10, 20), kernel_size=3, strides=(2, 1))
@@ -334,6 +344,7 @@ class PixelEncoder(nn.Module):
         kernel_size: int = 3,
         in_channels: int = 3,
         strides: Sequence[int] = (),
+        temperature: float = 1.0,
     ):
         super().__init__()
         strides = tuple(strides) or (1,) * len(channels)
@@ -343,7 +354,7 @@ class PixelEncoder(nn.Module):
             layers += [conv, nn.ReLU()]
             in_channels = out_channels
         self.convs = nn.Sequential(*layers)
-        self.points = SpatialSoftmax()
+        self.points = SpatialSoftmax(temperature)
         self.out_dim = 2 * in_channels
 
     def forward(self, pixels: torch.Tensor) -> torch.Tensor:
@@ -416,7 +427,11 @@ class ModuleNet(nn.Module):
         self.pixels = None
         if arch.pixels is not None:
             self.pixels = PixelEncoder(
-                arch.conv_channels, arch.kernel_size, arch.image_shape[-1], arch.conv_strides
+                arch.conv_channels,
+                arch.kernel_size,
+                arch.image_shape[-1],
+                arch.conv_strides,
+                arch.softmax_temperature,
             )
             in_dim += self.pixels.out_dim
         self.trunk = relu_layers(in_dim, arch.hidden, arch.dropout)

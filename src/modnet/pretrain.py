@@ -1,0 +1,216 @@
+"""Pretraining a vision task module's convolutions to find the objects of its scene.
+
+Levine, Finn et al.'s visuomotor policies, whose architecture the modular networks paper
+follows, start the convolutions from a pose-regression pretraining rather than from random
+weights: the feature points of the spatial softmax are trained to predict where the
+objects are.  GPS then fine-tunes them end to end.  Without it the S-step has to discover
+the objects from a few training scenes alone: in the colour-reaching experiment every
+training world shows the same 16 block layouts, and the convolutions fit those 16
+without learning to locate a block (``docs/RESULTS.md``).
+
+:func:`pretrain_vision` does that pretraining for every vision task module of a bank:
+
+* it renders ``images`` random scenes of the task (objects placed by the task's own
+  ``sample_params``, the arm at uniformly random joint angles so that it is seen
+  anywhere), spread evenly over the task's *training* worlds, so the held-out world's
+  arm-task pair is never shown;
+* labels each with the positions of the task's objects (every ``pos`` observable but the
+  end-effector's), read from the simulator's sensors;
+* trains the module's :class:`~modnet.modules.PixelEncoder` and a throw-away linear head
+  on the feature points to regress those positions (z-scored), holding out a tenth of
+  the scenes to report the localisation error in metres.
+
+The scenes come from their own random stream, apart from the train, test and random
+condition sets, so no evaluation scene is ever rendered for pretraining.
+
+Examples:
+    >>> from modnet.bank import ModuleBank
+    >>> bank = ModuleBank.build(["three_link"], ["reach"], pixels=True, seed=0)
+    >>> report = pretrain_vision(bank, [("three_link", "reach")], PretrainConfig(images=40, epochs=1))
+    >>> sorted(report["reach"])
+    ['baseline_error', 'images', 'object_errors', 'seconds', 'targets', 'val_error']
+    >>> list(report["reach"]["object_errors"])
+    ['target']
+"""
+
+from __future__ import annotations
+
+import math
+import time
+import zlib
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import mujoco
+import numpy as np
+import torch
+from torch import nn
+
+from modnet.bank import ModuleBank
+from modnet.envs import open_renderer
+from modnet.specs import PIXELS_SHAPE
+from modnet.worlds import CONDITION_SETS, World, get_world
+
+__all__ = ["PretrainConfig", "object_slots", "objects", "pretrain_vision", "render_scenes"]
+
+PRETRAIN_STREAM = len(CONDITION_SETS)  # the condition sets use random streams 0 .. 2
+VALIDATION_FRACTION = 0.1
+
+
+@dataclass(frozen=True)
+class PretrainConfig:
+    """Pose-regression pretraining of the vision task modules (off when ``images`` is 0).
+
+    Args:
+        images: random scenes rendered per task (0: no pretraining).
+        epochs: passes over them.
+        batch_size: images per Adam step.
+        lr: Adam's learning rate.
+        seed: the scenes' and the head's seed.
+
+    Examples:
+        >>> PretrainConfig(images=-1)
+        Traceback (most recent call last):
+        ...
+        ValueError: images must be a non-negative integer, got -1
+    """
+
+    images: int = 0
+    epochs: int = 30
+    batch_size: int = 64
+    lr: float = 1e-3
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if isinstance(self.images, bool) or not isinstance(self.images, int) or self.images < 0:
+            raise ValueError(f"images must be a non-negative integer, got {self.images!r}")
+        if self.images and self.images < 20:
+            raise ValueError(f"images must be 0 (off) or at least 20, got {self.images}")
+        for name in ("epochs", "batch_size"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"{name} must be a positive integer, got {value!r}")
+        if not (math.isfinite(self.lr) and self.lr > 0):
+            raise ValueError(f"lr must be positive, got {self.lr!r}")
+
+
+def objects(world: World) -> list[str]:
+    """The objects whose positions the image shows and pretraining regresses, in state order.
+
+    Examples:
+        >>> objects(get_world("three_link", "reach_red"))
+        ['red', 'green', 'yellow', 'black']
+    """
+    return [name for name, kind in world.task.observables if kind == "pos" and name != "ee"]
+
+
+def object_slots(world: World) -> list[int]:
+    """Where the objects' positions sit in the task state: every ``pos`` observable but the
+    end-effector's (what the image shows and the task module must find).
+
+    Examples:
+        >>> object_slots(get_world("three_link", "reach_red"))  # red, green, yellow, black
+        [4, 5, 6, 7, 8, 9, 10, 11]
+    """
+    slots = [world.task.slot(name, "pos") for name in objects(world)]
+    return [i for s in slots for i in range(s.start, s.stop)]
+
+
+def render_scenes(world: World, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """``n`` random scenes of ``world`` from the top camera and their objects' positions.
+
+    Returns uint8 images ``[n, 64, 80, 3]`` and float32 positions ``[n, len(object_slots)]``.
+    Objects are placed by the task's ``sample_params``; every joint of the arm is uniform
+    in ``[-pi, pi)``.  Only the forward kinematics run (no stepping), so an arm drawn over
+    an object does not push it.
+    """
+    model, data = world.model, mujoco.MjData(world.model)
+    renderer = open_renderer(model, *PIXELS_SHAPE[:2])
+    slots = object_slots(world)
+    images = np.zeros((n, *PIXELS_SHAPE), dtype=np.uint8)
+    positions = np.zeros((n, len(slots)), dtype=np.float32)
+    try:
+        for i in range(n):
+            arm = rng.uniform(-np.pi, np.pi, world.robot.n_joints)
+            world.reset_data(data, np.concatenate([arm, world.task.sample_params(rng)]))
+            renderer.update_scene(data, camera="top")
+            renderer.render(out=images[i])
+            positions[i] = world.observe(data.sensordata)[1][slots]
+    finally:
+        renderer.close()
+    return images, positions
+
+
+def pretrain_vision(
+    bank: ModuleBank, worlds: Sequence[tuple[str, str]], config: PretrainConfig
+) -> dict[str, dict[str, float]]:
+    """Pretrain the convolutions of every vision task module used by ``worlds``.
+
+    For each task: ``config.images`` scenes spread over the worlds in ``worlds`` that do the
+    task; returns, per task, the validation error (mean distance in metres between predicted
+    and true object positions; per object in ``object_errors``) next to the error of always
+    predicting the mean position (``baseline_error``), the number of positions regressed and
+    the time taken.  Only the
+    module's :class:`~modnet.modules.PixelEncoder` keeps what it learnt.
+    """
+    if config.images == 0:
+        return {}
+    tasks = sorted({task for _, task in worlds}, key=lambda t: [w[1] for w in worlds].index(t))
+    report = {}
+    for task in tasks:
+        encoder = bank.get("task", task).module.pixels
+        if encoder is None:
+            continue
+        start = time.perf_counter()
+        task_worlds = [get_world(robot, t) for robot, t in worlds if t == task]
+        if not object_slots(task_worlds[0]):
+            continue  # nothing to find in the image
+        rng = np.random.default_rng([config.seed, PRETRAIN_STREAM, zlib.crc32(task.encode())])
+        counts = np.diff(np.linspace(0, config.images, len(task_worlds) + 1).round().astype(int))
+        scenes = [render_scenes(w, int(k), rng) for w, k in zip(task_worlds, counts, strict=True) if k]
+        images = torch.from_numpy(np.concatenate([s[0] for s in scenes]))
+        targets = torch.from_numpy(np.concatenate([s[1] for s in scenes]))
+        report[task] = _regress(encoder, images, targets, config)
+        names = objects(task_worlds[0])
+        report[task]["object_errors"] = dict(zip(names, report[task]["object_errors"], strict=True))
+        report[task]["seconds"] = time.perf_counter() - start
+    return report
+
+
+def _regress(encoder: nn.Module, images: torch.Tensor, targets: torch.Tensor, config: PretrainConfig) -> dict:
+    """Train ``encoder`` plus a linear head to regress ``targets`` from ``images``."""
+    generator = torch.Generator().manual_seed(config.seed)
+    order = torch.randperm(len(images), generator=generator)
+    n_val = max(1, int(len(images) * VALIDATION_FRACTION))
+    val, train = order[:n_val], order[n_val:]
+    mean, std = targets[train].mean(0), targets[train].std(0).clamp_min(1e-3)
+    head = nn.Linear(encoder.out_dim, targets.shape[-1])
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(config.seed)
+        head.reset_parameters()
+    params = list(encoder.parameters()) + list(head.parameters())
+    optimizer = torch.optim.Adam(params, lr=config.lr)
+    was_training = encoder.training
+    encoder.train()
+    for _ in range(config.epochs):
+        for batch in train[torch.randperm(len(train), generator=generator)].split(config.batch_size):
+            loss = (head(encoder(images[batch])) - (targets[batch] - mean) / std).square().mean()
+            optimizer.zero_grad()
+            loss.backward()
+            optimizer.step()
+    encoder.train(was_training)
+    with torch.no_grad():
+        predicted = torch.cat([head(encoder(images[b])) for b in val.split(256)]) * std + mean
+    errors = _point_errors(predicted, targets[val])
+    return {
+        "images": len(images),
+        "targets": targets.shape[-1] // 2,
+        "val_error": float(errors.mean()),
+        "baseline_error": float(_point_errors(mean.expand_as(targets[val]), targets[val]).mean()),
+        "object_errors": errors.tolist(),
+    }
+
+
+def _point_errors(predicted: torch.Tensor, true: torch.Tensor) -> torch.Tensor:
+    """Mean planar distance between predicted and true points (``[n, 2 k]`` each), per point: ``[k]``."""
+    return (predicted - true).unflatten(-1, (-1, 2)).norm(dim=-1).mean(0)
