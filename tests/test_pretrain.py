@@ -87,10 +87,3 @@ def test_state_banks_and_zero_images_are_left_alone():
 def test_bad_pretraining_options_are_refused(field, value, message):
     with pytest.raises(ValueError, match=message):
         PretrainConfig(**{field: value})
-
-
-def test_docstring_examples_run():
-    import doctest
-
-    result = doctest.testmod(pretrain)
-    assert result.attempted > 0 and result.failed == 0

@@ -97,14 +97,10 @@ def numpy_affine_lqr(A, B, drift, Q, R, target, horizon):
 
 def test_huge_kl_budget_gives_analytic_riccati_gains():
     cost, dynamics, sys = make_problem()
-    result = solve_kl_constrained_lqr(
-        cost, dynamics, broad_prev(), config=LQRConfig(kl_step=1e6)
-    )
+    result = solve_kl_constrained_lqr(cost, dynamics, broad_prev(), config=LQRConfig(kl_step=1e6))
     assert bool((result.eta < 1e-6).all()), result.eta
     assert bool(result.converged.all())
-    K_ref, k_ref = numpy_affine_lqr(
-        sys["A"], sys["B"], sys["drift"], sys["Q"], sys["R"], sys["target"], T
-    )
+    K_ref, k_ref = numpy_affine_lqr(sys["A"], sys["B"], sys["drift"], sys["Q"], sys["R"], sys["target"], T)
     for m in range(M):
         np.testing.assert_allclose(result.gains.K[m].numpy(), K_ref, rtol=1e-5, atol=1e-6)
         np.testing.assert_allclose(result.gains.k[m].numpy(), k_ref, rtol=1e-5, atol=1e-6)
@@ -158,9 +154,11 @@ def test_kl_closed_form_matches_distribution_kl_and_monte_carlo():
     kl = kl_divergence(new, prev, StateActionMarginals(mu, sigma), per_step=True)[0, 0]
 
     xs = torch.distributions.MultivariateNormal(mu_x, sigma_x).sample((20000,))
+
     def conditional(gains: LinearGaussianGains) -> torch.distributions.MultivariateNormal:
         mean = xs @ gains.K[0, 0].T + gains.k[0, 0]
         return torch.distributions.MultivariateNormal(mean, gains.cov[0, 0])
+
     mc = torch.distributions.kl_divergence(conditional(new), conditional(prev)).mean()
     assert abs(float(kl) - float(mc)) < 0.03 * float(mc)
 
@@ -225,12 +223,3 @@ def test_omega_per_step_matches_scalar_and_enters_the_denominator():
     # (C + eta Lambda) / (eta + omega) at the last step: Q_uu is exactly that block.
     expected = (cost.C[:, -1, dX:, dX:] + 0.7 * prev.precision[:, -1]) / 1.0
     torch.testing.assert_close(scalar.gains.precision[:, -1], expected)
-
-
-@pytest.mark.parametrize("module", ["errors", "cost", "dynamics", "controller", "lqr"])
-def test_docstring_examples_run(module):
-    import doctest
-    import importlib
-
-    result = doctest.testmod(importlib.import_module(f"modnet.gps.{module}"))
-    assert result.attempted > 0 and result.failed == 0
