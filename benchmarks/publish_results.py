@@ -114,6 +114,16 @@ def zero_shot(run_dir: Path, experiment: str, docs: Path = DOCS) -> dict:
         out["paper"] = {"universe": paper, **PAPER[paper]}
     if results.get("random_conditions"):
         out["extended"] = _extended(results)
+    if "pretrain" in results:  # the vision modules' pose pretraining: rendered scenes, not env steps
+        out["pretrain"] = {
+            task: {
+                "images": figures["images"],
+                "val_error": _round(figures["val_error"]),
+                "baseline_error": _round(figures["baseline_error"]),
+                "object_errors": {k: _round(v) for k, v in figures["object_errors"].items()},
+            }
+            for task, figures in results["pretrain"].items()
+        }
     if "finetune" in results:
         out["finetune"] = finetuning(results)
         docs.mkdir(parents=True, exist_ok=True)

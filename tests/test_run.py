@@ -3,6 +3,7 @@
 import importlib.util
 import json
 import os
+import shutil
 import subprocess
 import sys
 import time
@@ -297,3 +298,30 @@ def test_score_bank_scores_every_world_and_agrees_with_the_zero_shot_table(tiny_
     assert figures["held_out"] == pytest.approx(results["methods"]["composed"]["mean"], abs=1e-4)
     training = [figures["mean_distance"][w] for w in results["training_worlds"]]
     assert figures["training_worlds"]["mean"] == pytest.approx(sum(training) / len(training), abs=1e-4)
+
+
+def test_published_results_carry_the_vision_pretraining_figures(tiny_run, tmp_path):
+    run_dir, done, _ = tiny_run
+    assert done.returncode == 0, done.stderr[-3000:]
+    copy = tmp_path / "run"
+    shutil.copytree(run_dir, copy, ignore=shutil.ignore_patterns("bank", "*.pt", "wandb", "tiny-*"))
+    results = json.loads((copy / "results.json").read_text())
+    figures = {"images": 4000, "targets": 1, "val_error": 0.01234567, "baseline_error": 0.4, "seconds": 9.0}
+    results["pretrain"] = {"reach_red": {**figures, "object_errors": {"red": 0.01234567}}}
+    (copy / "results.json").write_text(json.dumps(results))
+    published = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "publish_results.py"), "zero-shot", str(copy)]
+        + ["--experiment", "tiny_pretrained", "--docs", str(tmp_path)],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    out = json.loads(published.stdout.splitlines()[-1])
+    assert out["pretrain"] == {
+        "reach_red": {
+            "images": 4000,
+            "val_error": 0.0123,
+            "baseline_error": 0.4,
+            "object_errors": {"red": 0.0123},
+        }
+    }
