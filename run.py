@@ -57,19 +57,24 @@ def run_identity(run: RunConfig, universe: Universe, split: Split) -> dict:
     """What a checkpoint must match to be resumed: everything that shapes training but its length.
 
     Flat (``"gps.badmm.dual_rate": 0.2``), so a mismatch names the very keys that differ."""
-    return flatten(
-        {
-            "universe": universe.name,
-            "holdout": world_name(split.holdout),
-            "training_worlds": [world_name(w) for w in split.training],
-            "pixels": universe.pixels,
-            "policy": run.bank.policy,
-            "seed": run.seed,
-            "gps": dataclasses.asdict(run.gps_config()),
-            "bank": run.bank_config().to_json(),
-            "pretrain": dataclasses.asdict(run.pretrain_config()),
-        }
-    )
+    parts = {
+        "universe": universe.name,
+        "holdout": world_name(split.holdout),
+        "training_worlds": [world_name(w) for w in split.training],
+        "pixels": universe.pixels,
+        "policy": run.bank.policy,
+        "seed": run.seed,
+        "gps": dataclasses.asdict(run.gps_config()),
+        "bank": run.bank_config().to_json(),
+    }
+    # Options newer than some checkpoints stay out while they are at their do-nothing
+    # defaults, so a run saved before they existed still resumes.
+    if run.pretrain.images:
+        parts["pretrain"] = dataclasses.asdict(run.pretrain_config())
+    identity = flatten(parts)
+    if identity["bank.softmax_temperature"] == 1.0:
+        del identity["bank.softmax_temperature"]
+    return identity
 
 
 def resume_point(run: RunConfig, checkpoint: Path, identity: dict) -> Checkpoint | None:
@@ -206,7 +211,9 @@ def main(cfg: DictConfig) -> None:
             config=run.bank_config(),
             seed=run.seed,
         )
-        if resume_from is None and run.pretrain.images:  # a resumed bank has it in its weights
+        if resume_from is None:  # a resumed bank has its pretraining in its weights
+            (run_dir / PRETRAIN_REPORT).unlink(missing_ok=True)  # a crashed attempt's figures
+        if resume_from is None and run.pretrain.images:
             start = time.perf_counter()
             pretrained = pretrain_vision(bank, split.training, run.pretrain_config())
             report.write_json(run_dir / PRETRAIN_REPORT, pretrained)

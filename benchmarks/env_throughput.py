@@ -25,7 +25,7 @@ import torch
 from torchrl.envs import DMControlWrapper
 
 import modnet
-from modnet.envs import open_renderer
+from modnet.envs import CAMERA, open_renderer
 from modnet.specs import CONTROL_SUBSTEPS, PIXELS_SHAPE
 
 
@@ -68,7 +68,7 @@ def renderer_frames_per_s(world, frames: int) -> float:
     out = np.zeros(PIXELS_SHAPE, dtype=np.uint8)
     start = time.perf_counter()
     for _ in range(frames):
-        renderer.update_scene(data, camera="top")
+        renderer.update_scene(data, camera=CAMERA)
         renderer.render(out=out)
     rate = frames / (time.perf_counter() - start)
     renderer.close()

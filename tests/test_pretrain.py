@@ -41,7 +41,7 @@ def test_pretraining_teaches_the_convolutions_to_find_the_target():
     before = {k: v.clone() for k, v in bank.state_dict().items()}
     worlds = [("three_link", "reach"), ("four_link", "reach")]
     report = pretrain_vision(bank, worlds, PretrainConfig(images=800, epochs=40, lr=3e-3))
-    figures = report["reach"]
+    figures = report["task/reach"]
     assert figures["images"] == 800 and list(figures["object_errors"]) == ["target"]
     assert figures["val_error"] < 0.3 * figures["baseline_error"]
     changed = {k for k, v in bank.state_dict().items() if not torch.equal(v, before[k])}
@@ -64,7 +64,14 @@ def test_pretraining_renders_the_training_worlds_only(monkeypatch):
         ("three_link/reach_black", 21),
         ("three_link/reach_red", 10),
     ]
-    assert set(report) == {"reach_red", "reach_black"}
+    assert set(report) == {"task/reach_red", "task/reach_black"}
+
+
+def test_a_monolithic_baseline_gets_the_same_pretraining_per_world_network():
+    bank = ModuleBank.build(["three_link"], ["reach_red"], pixels=True, policy="monolithic", seed=0)
+    report = pretrain_vision(bank, [("three_link", "reach_red")], PretrainConfig(images=20, epochs=1))
+    assert list(report) == ["world/three_link-reach_red"]
+    assert list(report["world/three_link-reach_red"]["object_errors"]) == ["red", "green", "yellow", "black"]
 
 
 def test_state_banks_and_zero_images_are_left_alone():
@@ -80,8 +87,11 @@ def test_state_banks_and_zero_images_are_left_alone():
     [
         ("images", 5, "images must be 0 \\(off\\) or at least 20"),
         ("images", -1, "images must be a non-negative integer"),
-        ("epochs", 0, "epochs must be a positive integer"),
-        ("lr", 0.0, "lr must be positive"),
+        ("epochs", 0, "epochs must hold positive integers"),
+        ("lr", 0.0, "lr must be a positive finite number"),
+        ("lr", True, "lr must be a positive finite number"),
+        ("seed", -1, "seed must be a non-negative integer"),
+        ("batch_size", 0, "batch_size must hold positive integers"),
     ],
 )
 def test_bad_pretraining_options_are_refused(field, value, message):

@@ -227,7 +227,7 @@ def test_a_corrupt_checkpoint_stops_the_run_with_one_message_and_stays(tmp_path)
         (["universe=tiny", "holdout=five_link/reach_red"], "'five_link/reach_red' is not in universe 'tiny'"),
         (["universe=tiny", "holdout=all"], "holdout=all is a leave-one-world-out sweep"),
         (["universe=tiny", "pretrain.images=100"], "universe 'tiny' has none: use an image universe"),
-        (["universe=color_reach", "pretrain.epochs=0"], "pretrain: epochs must be a positive integer"),
+        (["universe=color_reach", "pretrain.epochs=0"], "pretrain: epochs must hold positive integers"),
     ],
 )
 def test_bad_configs_fail_in_seconds_with_one_clear_message(tmp_path, overrides, message):
@@ -298,6 +298,23 @@ def test_score_bank_scores_every_world_and_agrees_with_the_zero_shot_table(tiny_
     assert figures["held_out"] == pytest.approx(results["methods"]["composed"]["mean"], abs=1e-4)
     training = [figures["mean_distance"][w] for w in results["training_worlds"]]
     assert figures["training_worlds"]["mean"] == pytest.approx(sum(training) / len(training), abs=1e-4)
+
+
+def test_options_at_their_do_nothing_defaults_stay_out_of_the_checkpoint_identity():
+    """A run saved before pretraining and the softmax temperature existed still resumes;
+    turning either on makes a different run."""
+    run_py = load_run_module()
+    base = composed_run("universe=color_reach", "seed=3")
+    universe, split = validate(base)
+    plain = run_py.run_identity(
+        composed_run("universe=color_reach", "bank.softmax_temperature=1.0", "pretrain.images=0"),
+        universe,
+        split,
+    )
+    assert not any(k.startswith("pretrain.") or k == "bank.softmax_temperature" for k in plain)
+    pretrained = run_py.run_identity(base, universe, split)
+    assert pretrained["pretrain.images"] == 4000 and pretrained["bank.softmax_temperature"] == 0.05
+    assert pretrained["pretrain.seed"] == 3  # follows the run seed
 
 
 def test_published_results_carry_the_vision_pretraining_figures(tiny_run, tmp_path):

@@ -111,9 +111,9 @@ class BankConfig:
         kernel_size: their square kernel (3).
         conv_strides: their strides (2, 1): the first convolution halves the 64x80 image, which
             makes an S-step SGD step 7 times cheaper on a CPU (``benchmarks/pixel_sgd.py``).
-        softmax_temperature: temperature of the vision task module's spatial softmax (1; the
-            image universes use 0.05, under which pose-regression pretraining finds every
-            block: :mod:`modnet.pretrain`).
+        softmax_temperature: temperature of the spatial softmax of every module that reads
+            images (1; ``color_reach`` uses 0.05, under which pose-regression pretraining
+            finds all four blocks: :mod:`modnet.pretrain`).
         init_log_std: initial log-std of every action dimension (``log sqrt(0.1)``: GPS's
             initial policy variance 0.1).
 
@@ -530,7 +530,13 @@ class ModuleBank(nn.Module):
             for name, module in slot.items():
                 yield factor, name, module
 
-    def _slot_names(self, world: World) -> list[tuple[str, str]]:
+    def slot_names(self, world: World) -> list[tuple[str, str]]:
+        """``(factor, name)`` of each module of ``world`` (one ``("world", "ROBOT-TASK")`` when monolithic).
+
+        Examples:
+            >>> ModuleBank.build(["three_link"], ["reach"]).slot_names(("three_link", "reach"))
+            [('robot', 'three_link'), ('task', 'reach')]
+        """
         if self.policy == "monolithic":
             return [(MONOLITHIC, "-".join(world))]
         return list(zip(self.world_factors, world, strict=True))
@@ -539,7 +545,7 @@ class ModuleBank(nn.Module):
         """Record that a world's modules were trained on it (kept in the manifest)."""
         world = self.world(*names, **by_factor)
         self.parts(world)
-        for slot in self._slot_names(world):
+        for slot in self.slot_names(world):
             self._trained_on[slot].add(world)
 
     def trained_on(self, factor: str, name: str) -> frozenset[World]:

@@ -25,6 +25,7 @@ from modnet.specs import EE_DIM, PIXELS_SHAPE, TORQUE_LIMIT
 from modnet.worlds import CONDITION_SETS, World, get_world
 
 _OPEN_RENDERERS: weakref.WeakSet = weakref.WeakSet()
+CAMERA = "top"  # the camera every scene defines and a vision policy sees through
 
 
 def _close_open_renderers() -> None:
@@ -110,7 +111,7 @@ class WorldEnv(EnvBase):
         self._renderer = open_renderer(model, *PIXELS_SHAPE[:2]) if pixels else None
         self._picture_renderers: dict[tuple[int, int], mujoco.Renderer] = {}  # render_frames' sizes
         self._frames = np.zeros((num_envs, *PIXELS_SHAPE), dtype=np.uint8) if pixels else None
-        self._camera = "top"
+        self._camera = CAMERA
         task_def = self.world.task
         self._ee_index = torch.as_tensor(np.r_[task_def.slot("ee", "pos"), task_def.slot("ee", "vel")])
         # mujoco releases the GIL while stepping: split the copies over a few threads

@@ -189,7 +189,7 @@ class ModuleArch:
         if isinstance(temperature, bool) or not isinstance(temperature, (int, float)):
             raise ValueError(f"softmax_temperature must be a number, got {temperature!r}")
         if not 0 < temperature < math.inf:
-            raise ValueError(f"softmax_temperature must be positive, got {temperature!r}")
+            raise ValueError(f"softmax_temperature must be a positive finite number, got {temperature!r}")
         set_("softmax_temperature", float(temperature))
         if not math.isfinite(self.init_log_std):
             raise ValueError(f"init_log_std must be finite, got {self.init_log_std!r}")

@@ -8,12 +8,14 @@ the objects from a few training scenes alone: in the colour-reaching experiment 
 training world shows the same 16 block layouts, and the convolutions fit those 16
 without learning to locate a block (``docs/RESULTS.md``).
 
-:func:`pretrain_vision` does that pretraining for every vision task module of a bank:
+:func:`pretrain_vision` does that pretraining for every module of a bank that reads images
+(the vision task modules; in a monolithic bank, each world's network, so the baseline gets
+the same start):
 
 * it renders ``images`` random scenes of the task (objects placed by the task's own
   ``sample_params``, the arm at uniformly random joint angles so that it is seen
-  anywhere), spread evenly over the task's *training* worlds, so the held-out world's
-  arm-task pair is never shown;
+  anywhere), spread evenly over the *training* worlds that use the module, so the held-out
+  world's arm-task pair is never shown;
 * labels each with the positions of the task's objects (every ``pos`` observable but the
   end-effector's), read from the simulator's sensors;
 * trains the module's :class:`~modnet.modules.PixelEncoder` and a throw-away linear head
@@ -27,9 +29,9 @@ Examples:
     >>> from modnet.bank import ModuleBank
     >>> bank = ModuleBank.build(["three_link"], ["reach"], pixels=True, seed=0)
     >>> report = pretrain_vision(bank, [("three_link", "reach")], PretrainConfig(images=40, epochs=1))
-    >>> sorted(report["reach"])
+    >>> sorted(report["task/reach"])
     ['baseline_error', 'images', 'object_errors', 'seconds', 'targets', 'val_error']
-    >>> list(report["reach"]["object_errors"])
+    >>> list(report["task/reach"]["object_errors"])
     ['target']
 """
 
@@ -40,6 +42,7 @@ import time
 import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import mujoco
 import numpy as np
@@ -47,13 +50,15 @@ import torch
 from torch import nn
 
 from modnet.bank import ModuleBank
-from modnet.envs import open_renderer
+from modnet.envs import CAMERA, open_renderer
+from modnet.modules import BankModule, check_positive_ints
 from modnet.specs import PIXELS_SHAPE
-from modnet.worlds import CONDITION_SETS, World, get_world
+from modnet.worlds import _SPLIT_STREAM, World, get_world
 
 __all__ = ["PretrainConfig", "object_slots", "objects", "pretrain_vision", "render_scenes"]
 
-PRETRAIN_STREAM = len(CONDITION_SETS)  # the condition sets use random streams 0 .. 2
+PRETRAIN_STREAM = 3  # its own random stream: the condition sets (train, test, random) use 0 .. 2
+assert PRETRAIN_STREAM not in _SPLIT_STREAM.values()
 VALIDATION_FRACTION = 0.1
 
 
@@ -66,7 +71,7 @@ class PretrainConfig:
         epochs: passes over them.
         batch_size: images per Adam step.
         lr: Adam's learning rate.
-        seed: the scenes' and the head's seed.
+        seed: the scenes' and the head's seed (``run.py``: the run's ``seed``).
 
     Examples:
         >>> PretrainConfig(images=-1)
@@ -82,16 +87,17 @@ class PretrainConfig:
     seed: int = 0
 
     def __post_init__(self) -> None:
-        if isinstance(self.images, bool) or not isinstance(self.images, int) or self.images < 0:
-            raise ValueError(f"images must be a non-negative integer, got {self.images!r}")
+        for name in ("images", "seed"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+                raise ValueError(f"{name} must be a non-negative integer, got {value!r}")
         if self.images and self.images < 20:
             raise ValueError(f"images must be 0 (off) or at least 20, got {self.images}")
-        for name in ("epochs", "batch_size"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ValueError(f"{name} must be a positive integer, got {value!r}")
-        if not (math.isfinite(self.lr) and self.lr > 0):
-            raise ValueError(f"lr must be positive, got {self.lr!r}")
+        check_positive_ints("epochs", (self.epochs,))
+        check_positive_ints("batch_size", (self.batch_size,))
+        lr = self.lr
+        if isinstance(lr, bool) or not isinstance(lr, (int, float)) or not (math.isfinite(lr) and lr > 0):
+            raise ValueError(f"lr must be a positive finite number, got {lr!r}")
 
 
 def objects(world: World) -> list[str]:
@@ -133,7 +139,7 @@ def render_scenes(world: World, n: int, rng: np.random.Generator) -> tuple[np.nd
         for i in range(n):
             arm = rng.uniform(-np.pi, np.pi, world.robot.n_joints)
             world.reset_data(data, np.concatenate([arm, world.task.sample_params(rng)]))
-            renderer.update_scene(data, camera="top")
+            renderer.update_scene(data, camera=CAMERA)
             renderer.render(out=images[i])
             positions[i] = world.observe(data.sensordata)[1][slots]
     finally:
@@ -143,37 +149,38 @@ def render_scenes(world: World, n: int, rng: np.random.Generator) -> tuple[np.nd
 
 def pretrain_vision(
     bank: ModuleBank, worlds: Sequence[tuple[str, str]], config: PretrainConfig
-) -> dict[str, dict[str, float]]:
-    """Pretrain the convolutions of every vision task module used by ``worlds``.
+) -> dict[str, dict[str, Any]]:
+    """Pretrain the convolutions of every module that reads images in the policies of ``worlds``.
 
-    For each task: ``config.images`` scenes spread over the worlds in ``worlds`` that do the
-    task; returns, per task, the validation error (mean distance in metres between predicted
-    and true object positions; per object in ``object_errors``) next to the error of always
-    predicting the mean position (``baseline_error``), the number of positions regressed and
-    the time taken.  Only the
-    module's :class:`~modnet.modules.PixelEncoder` keeps what it learnt.
+    For each such module, ``config.images`` scenes spread over the worlds in ``worlds`` that
+    use it.  Returns, keyed ``"factor/name"`` (``"task/reach_red"``), the validation error
+    (mean distance in metres between predicted and true object positions; per object in
+    ``object_errors``) next to the error of always predicting the mean position
+    (``baseline_error``), the number of scenes and the seconds taken.  Only the module's
+    :class:`~modnet.modules.PixelEncoder` keeps what it learnt.
     """
     if config.images == 0:
         return {}
-    tasks = sorted({task for _, task in worlds}, key=lambda t: [w[1] for w in worlds].index(t))
+    users: dict[tuple[str, str], tuple[BankModule, list[World]]] = {}
+    for robot, task in worlds:
+        world = get_world(robot, task)
+        for factor, name in bank.slot_names((robot, task)):
+            module = bank.get(factor, name)
+            if module.module.pixels is not None and object_slots(world):
+                users.setdefault((factor, name), (module, []))[1].append(world)
     report = {}
-    for task in tasks:
-        encoder = bank.get("task", task).module.pixels
-        if encoder is None:
-            continue
+    for (factor, name), (module, module_worlds) in users.items():
         start = time.perf_counter()
-        task_worlds = [get_world(robot, t) for robot, t in worlds if t == task]
-        if not object_slots(task_worlds[0]):
-            continue  # nothing to find in the image
-        rng = np.random.default_rng([config.seed, PRETRAIN_STREAM, zlib.crc32(task.encode())])
-        counts = np.diff(np.linspace(0, config.images, len(task_worlds) + 1).round().astype(int))
-        scenes = [render_scenes(w, int(k), rng) for w, k in zip(task_worlds, counts, strict=True) if k]
+        label = f"{factor}/{name}"
+        rng = np.random.default_rng([config.seed, PRETRAIN_STREAM, zlib.crc32(name.encode())])
+        counts = np.diff(np.linspace(0, config.images, len(module_worlds) + 1).round().astype(int))
+        scenes = [render_scenes(w, int(k), rng) for w, k in zip(module_worlds, counts, strict=True) if k]
         images = torch.from_numpy(np.concatenate([s[0] for s in scenes]))
         targets = torch.from_numpy(np.concatenate([s[1] for s in scenes]))
-        report[task] = _regress(encoder, images, targets, config)
-        names = objects(task_worlds[0])
-        report[task]["object_errors"] = dict(zip(names, report[task]["object_errors"], strict=True))
-        report[task]["seconds"] = time.perf_counter() - start
+        figures = _regress(module.module.pixels, images, targets, config)
+        errors = figures.pop("object_errors")
+        figures["object_errors"] = dict(zip(objects(module_worlds[0]), errors, strict=True))
+        report[label] = {**figures, "seconds": time.perf_counter() - start}
     return report
 
 
@@ -198,9 +205,10 @@ def _regress(encoder: nn.Module, images: torch.Tensor, targets: torch.Tensor, co
             optimizer.zero_grad()
             loss.backward()
             optimizer.step()
-    encoder.train(was_training)
+    encoder.eval()
     with torch.no_grad():
         predicted = torch.cat([head(encoder(images[b])) for b in val.split(256)]) * std + mean
+    encoder.train(was_training)
     errors = _point_errors(predicted, targets[val])
     return {
         "images": len(images),
