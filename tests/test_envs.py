@@ -1,11 +1,14 @@
 """The batched environment: specs, keys, horizon, exact agreement with dm_control, pixels, errors."""
 
+import gc
+
 import numpy as np
 import pytest
 import torch
 from torchrl.envs.utils import check_env_specs
 
 import modnet
+from modnet.envs import WorldEnv
 
 
 @pytest.mark.parametrize("robot", modnet.ROBOTS)
@@ -156,3 +159,16 @@ def test_pixels_follow_the_block_position():
     order_x, order_col = red[:, 0].argsort(), centroids[:, 0].argsort()
     assert order_x.tolist() == order_col.tolist()
     assert red[:, 1].argsort().tolist() == centroids[:, 1].argsort(descending=True).tolist()
+
+
+def test_dropping_a_pixel_env_leaves_the_next_one_seeing():
+    """mujoco frees a renderer's GL objects in the current GL context: dropping an env after
+    another was made used to blank the newer one's frames for good."""
+    first = WorldEnv("three_link", "reach_red", pixels=True)
+    second = WorldEnv("four_link", "reach_red", pixels=True)
+    seen = second.reset()["task", "pixels"].clone()
+    del first
+    gc.collect()
+    after = second.reset()["task", "pixels"]
+    assert seen.float().mean() > 100  # the grey floor
+    assert torch.equal(after, seen)

@@ -33,15 +33,32 @@ def _close_open_renderers() -> None:
         renderer.close()
 
 
+class Renderer(mujoco.Renderer):
+    """``mujoco.Renderer`` that frees its GL objects in its own GL context.
+
+    mujoco's ``close`` (also run when a renderer is garbage-collected) frees the rendering
+    context in whichever GL context is current.  Once a newer renderer exists, that is the
+    newer one's: its framebuffer is deleted and it draws black frames from then on.  So a
+    pixel env dropped after another was made (``benchmarks/score_bank.py`` scoring world
+    after world, a fine-tuning start after the previous one) blinded the live one.
+    """
+
+    def close(self) -> None:
+        context = getattr(self, "_gl_context", None)  # None after close, or without a GL backend
+        if context is not None:
+            context.make_current()
+        super().close()
+
+
 def open_renderer(model: mujoco.MjModel, height: int, width: int) -> mujoco.Renderer:
-    """A ``mujoco.Renderer`` that is closed at exit before mujoco tears its EGL display down.
+    """A :class:`Renderer` that is closed at exit before mujoco tears its EGL display down.
 
     Unreachable renderers are collected first: mujoco's EGL context releases the thread's
     current context when freed, and a collection that ran in the middle of building the
     new renderer would leave it drawing black frames.
     """
     gc.collect()
-    renderer = mujoco.Renderer(model, height, width)
+    renderer = Renderer(model, height, width)
     if not _OPEN_RENDERERS:
         # registered after mujoco's own exit hook, so it runs first (atexit is last-in first-out)
         atexit.unregister(_close_open_renderers)
