@@ -120,7 +120,8 @@ def zero_shot(run_dir: Path, experiment: str, docs: Path = DOCS) -> dict:
                 "images": figures["images"],
                 "val_error": _round(figures["val_error"]),
                 "baseline_error": _round(figures["baseline_error"]),
-                "object_errors": {k: _round(v) for k, v in figures["object_errors"].items()},
+                # per object since the figures had them (benchmarks/pretrain_vision.py gives them too)
+                "object_errors": {k: _round(v) for k, v in figures.get("object_errors", {}).items()},
             }
             for task, figures in results["pretrain"].items()
         }

@@ -27,3 +27,13 @@ def test_gps_on_one_world_brings_the_policy_within_the_success_distance():
 def test_lqr_benchmark_reports_a_ratio_against_numpy():
     figures = last_json("lqr.py", "--repeats", "3")
     assert figures["max_abs_diff_K_k_chol"] < 1e-9 and figures["speedup_numpy_over_batched"] > 0
+
+
+def test_pretrain_benchmark_reports_every_vision_module_and_a_ratio_against_mj_step():
+    figures = last_json(
+        "pretrain_vision.py", "universe=color_reach", "pretrain.images=40", "pretrain.epochs=1", timeout=300
+    )
+    assert set(figures["modules"]) == {f"task/reach_{c}" for c in ("red", "green", "yellow", "black")}
+    for module in figures["modules"].values():
+        assert list(module["object_errors"]) == ["red", "green", "yellow", "black"]
+    assert figures["render_scene_vs_mj_step"] > 1  # a frame costs more than a physics step
