@@ -328,9 +328,10 @@ class PixelEncoder(nn.Module):
     Convolutions are "same"-padded so feature points keep the image's coordinates; a stride
     of 2 in the first one (as in Levine et al.'s visuomotor network) quarters the cost of
     every layer after it.  ``temperature`` divides the last maps before the softmax: at 1
-    a small object (a 4-pixel block) barely moves its channel's feature point until the
-    filters grow large, and a dark one (the black block) is not found at all within 40
-    epochs of pose regression; at 0.05 all four blocks are (``modnet.pretrain``).
+    a small object (a 4-pixel block) barely moves its channel's feature point, and 60
+    epochs of pose regression (``modnet.pretrain``) leave a colour block 0.4 m off in two
+    of four colour modules; at 0.05 each finds its own block within 0.045 m
+    (``benchmarks/pretrain_vision.py``).
 
     Examples:
         >>> encoder = PixelEncoder(channels=(10, 20), kernel_size=3, strides=(2, 1))
