@@ -203,14 +203,7 @@ def main(cfg: DictConfig) -> None:
         log.config(flatten(OmegaConf.to_container(cfg, resolve=True)))
 
         # 2. train the bank on every training world
-        bank = ModuleBank.build(
-            universe.robots,
-            universe.tasks,
-            pixels=universe.pixels,
-            policy=run.bank.policy,
-            config=run.bank_config(),
-            seed=run.seed,
-        )
+        bank = run.new_bank(universe)
         if resume_from is None:  # a resumed bank has its pretraining in its weights
             (run_dir / PRETRAIN_REPORT).unlink(missing_ok=True)  # a crashed attempt's figures
         if resume_from is None and run.pretrain.images:

@@ -27,7 +27,6 @@ import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from modnet.bank import ModuleBank
 from modnet.config import RunConfig, register_configs, validate
 from modnet.pretrain import pretrain_vision, render_scenes
 from modnet.worlds import get_world
@@ -61,14 +60,7 @@ def main() -> None:
     universe, split = validate(run)
     if not run.pretrain.images:
         sys.exit(f"pretrain_vision.py: pretraining is off for {overrides}: set pretrain.images")
-    bank = ModuleBank.build(
-        universe.robots,
-        universe.tasks,
-        pixels=universe.pixels,
-        policy=run.bank.policy,
-        config=run.bank_config(),
-        seed=run.seed,
-    )
+    bank = run.new_bank(universe)
     start = time.perf_counter()
     report = pretrain_vision(bank, split.training, run.pretrain_config())
     seconds = time.perf_counter() - start

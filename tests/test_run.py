@@ -114,17 +114,22 @@ def test_tiny_pipeline_end_to_end_in_under_two_minutes(tiny_run):
     assert list((run_dir / "tiny-four_link-reach_black" / "scalars" / "train").rglob("distance.csv"))
 
 
-def test_published_fine_tuning_has_curves_iterations_to_success_and_samples(tiny_run, tmp_path):
-    run_dir, done, _ = tiny_run
-    assert done.returncode == 0, done.stderr[-3000:]
+def publish_zero_shot(run_dir: Path, experiment: str, docs: Path) -> dict:
+    """``benchmarks/publish_results.py zero-shot`` on a run directory: the JSON it prints."""
     published = subprocess.run(
         [sys.executable, str(ROOT / "benchmarks" / "publish_results.py"), "zero-shot", str(run_dir)]
-        + ["--experiment", "tiny_finetune", "--docs", str(tmp_path)],
+        + ["--experiment", experiment, "--docs", str(docs)],
         capture_output=True,
         text=True,
         check=True,
     )
-    tuning = json.loads(published.stdout.splitlines()[-1])["finetune"]
+    return json.loads(published.stdout.splitlines()[-1])
+
+
+def test_published_fine_tuning_has_curves_iterations_to_success_and_samples(tiny_run, tmp_path):
+    run_dir, done, _ = tiny_run
+    assert done.returncode == 0, done.stderr[-3000:]
+    tuning = publish_zero_shot(run_dir, "tiny_finetune", tmp_path)["finetune"]
     results = json.loads((run_dir / "results.json").read_text())
     assert tuning["curves"] == {s: pytest.approx(c, abs=1e-4) for s, c in results["finetune"].items()}
     for start, curve in tuning["curves"].items():
@@ -326,14 +331,7 @@ def test_published_results_carry_the_vision_pretraining_figures(tiny_run, tmp_pa
     figures = {"images": 4000, "targets": 1, "val_error": 0.01234567, "baseline_error": 0.4, "seconds": 9.0}
     results["pretrain"] = {"reach_red": {**figures, "object_errors": {"red": 0.01234567}}}
     (copy / "results.json").write_text(json.dumps(results))
-    published = subprocess.run(
-        [sys.executable, str(ROOT / "benchmarks" / "publish_results.py"), "zero-shot", str(copy)]
-        + ["--experiment", "tiny_pretrained", "--docs", str(tmp_path)],
-        capture_output=True,
-        text=True,
-        check=True,
-    )
-    out = json.loads(published.stdout.splitlines()[-1])
+    out = publish_zero_shot(copy, "tiny_pretrained", tmp_path)
     assert out["pretrain"] == {
         "reach_red": {
             "images": 4000,

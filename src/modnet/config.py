@@ -29,7 +29,7 @@ from collections.abc import Mapping
 from dataclasses import MISSING, dataclass, field, fields, is_dataclass
 from typing import Any
 
-from modnet.bank import BankConfig
+from modnet.bank import BankConfig, ModuleBank
 from modnet.evaluate import FINETUNE_STARTS
 from modnet.gps.badmm import BADMMConfig
 from modnet.gps.dynamics import DynamicsPriorConfig
@@ -233,6 +233,18 @@ class RunConfig:
 
     def pretrain_config(self) -> PretrainConfig:
         return build(PretrainConfig, self.pretrain, "pretrain.")
+
+    def new_bank(self, universe: Universe) -> ModuleBank:
+        """The untrained bank this run starts from: every robot and task module of ``universe``
+        (or one network per world with ``bank.policy=monolithic``), seeded by ``seed``."""
+        return ModuleBank.build(
+            universe.robots,
+            universe.tasks,
+            pixels=universe.pixels,
+            policy=self.bank.policy,
+            config=self.bank_config(),
+            seed=self.seed,
+        )
 
     def check(self) -> None:
         """Values no schema type can rule out; :class:`ConfigError` naming the key."""
