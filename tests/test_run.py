@@ -328,7 +328,7 @@ def test_published_results_carry_the_vision_pretraining_figures(tiny_run, tmp_pa
     copy = tmp_path / "run"
     shutil.copytree(run_dir, copy, ignore=shutil.ignore_patterns("bank", "*.pt", "wandb", "tiny-*"))
     results = json.loads((copy / "results.json").read_text())
-    figures = {"images": 4000, "targets": 1, "val_error": 0.01234567, "baseline_error": 0.4, "seconds": 9.0}
+    figures = {"images": 4000, "val_error": 0.01234567, "baseline_error": 0.4, "seconds": 9.0}
     results["pretrain"] = {"reach_red": {**figures, "object_errors": {"red": 0.01234567}}}
     (copy / "results.json").write_text(json.dumps(results))
     out = publish_zero_shot(copy, "tiny_pretrained", tmp_path)
