@@ -108,6 +108,17 @@ def train(trainer: GPSTrainer, iterations: int, checkpoint: Path, identity: dict
         )
 
 
+def pretrain(run: RunConfig, split: Split, bank: ModuleBank, report_file: Path) -> None:
+    """Teach the bank's vision modules where the objects are, on the training worlds' scenes."""
+    pretrained = pretrain_vision(bank, split.training, run.pretrain_config())
+    report.write_json(report_file, pretrained)
+    for module, figures in pretrained.items():
+        print(
+            f"pretrained {module}'s convolutions on {figures['images']} scenes: objects found "
+            f"{figures['val_error']:.3f} m off (the mean position: {figures['baseline_error']:.3f} m)"
+        )
+
+
 def held_out_env(run: RunConfig, universe: Universe, split: Split, random: bool = False) -> WorldEnv:
     """The held-out world, one env copy per test condition (``random``: per extra random condition)."""
     ev = run.eval
@@ -206,16 +217,10 @@ def main(cfg: DictConfig) -> None:
         bank = run.new_bank(universe)
         if resume_from is None:  # a resumed bank has its pretraining in its weights
             (run_dir / PRETRAIN_REPORT).unlink(missing_ok=True)  # a crashed attempt's figures
-        if resume_from is None and run.pretrain.images:
-            start = time.perf_counter()
-            pretrained = pretrain_vision(bank, split.training, run.pretrain_config())
-            report.write_json(run_dir / PRETRAIN_REPORT, pretrained)
-            seconds["pretrain"] = time.perf_counter() - start
-            for task, figures in pretrained.items():
-                print(
-                    f"pretrained {task}'s convolutions on {figures['images']} scenes: objects found "
-                    f"{figures['val_error']:.3f} m off (the mean position: {figures['baseline_error']:.3f} m)"
-                )
+            if run.pretrain.images:
+                start = time.perf_counter()
+                pretrain(run, split, bank, run_dir / PRETRAIN_REPORT)
+                seconds["pretrain"] = time.perf_counter() - start
         trainer = GPSTrainer(bank, split.training, run.gps_config(), pixels=universe.pixels)
         if resume_from is not None:
             trainer.load_state_dict(resume_from.trainer)

@@ -340,3 +340,31 @@ def test_published_results_carry_the_vision_pretraining_figures(tiny_run, tmp_pa
             "object_errors": {"red": 0.0123},
         }
     }
+
+
+def test_an_image_run_pretrains_once_reports_it_and_a_resumed_run_does_not_pretrain_again(tmp_path):
+    """color_reach at toy sizes: pretraining happens before GPS on a fresh run only."""
+    small = [
+        "universe=color_reach",
+        "logger=none",
+        "gps.num_conditions=4",
+        "gps.samples_per_condition=1",
+        "gps.sgd_steps=5",
+        "gps.initial_sgd_steps=5",
+        "pretrain.images=20",
+        "pretrain.epochs=1",
+        f"hydra.run.dir={tmp_path}",
+    ]
+    first = run_py(*small, "gps.iterations=1")
+    assert first.returncode == 0, first.stderr[-3000:]
+    assert first.stdout.count("pretrained task/") == 4  # the four colour modules
+    figures = (tmp_path / "pretrain.json").read_text()
+    results = json.loads((tmp_path / "results.json").read_text())
+    assert set(results["pretrain"]) == {f"task/reach_{c}" for c in ("red", "green", "yellow", "black")}
+    assert results["seconds"]["pretrain"] > 0
+
+    resumed = run_py(*small, "gps.iterations=2", "resume=true")
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert "pretrained" not in resumed.stdout and "resumed" in resumed.stdout
+    assert (tmp_path / "pretrain.json").read_text() == figures
+    assert json.loads((tmp_path / "results.json").read_text())["pretrain"] == results["pretrain"]
