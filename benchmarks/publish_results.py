@@ -78,6 +78,13 @@ def _round(x: float) -> float:
     return round(float(x), 4)
 
 
+def _rounded(value):
+    """Floats rounded as in every published figure, through nested dicts; ints kept."""
+    if isinstance(value, dict):
+        return {k: _rounded(v) for k, v in value.items()}
+    return _round(value) if isinstance(value, float) else value
+
+
 def _wall_s(results: dict) -> float:
     """The seconds a job measured (training, evaluation, fine-tuning), summed."""
     return round(sum(results["seconds"].values()), 1)
@@ -116,14 +123,8 @@ def zero_shot(run_dir: Path, experiment: str, docs: Path = DOCS) -> dict:
         out["extended"] = _extended(results)
     if "pretrain" in results:  # the vision modules' pose pretraining: rendered scenes, not env steps
         out["pretrain"] = {
-            task: {
-                "images": figures["images"],
-                "val_error": _round(figures["val_error"]),
-                "baseline_error": _round(figures["baseline_error"]),
-                # per object since the figures had them (benchmarks/pretrain_vision.py gives them too)
-                "object_errors": {k: _round(v) for k, v in figures.get("object_errors", {}).items()},
-            }
-            for task, figures in results["pretrain"].items()
+            module: {k: _rounded(v) for k, v in figures.items() if k != "seconds"}
+            for module, figures in results["pretrain"].items()
         }
     if "finetune" in results:
         out["finetune"] = finetuning(results)

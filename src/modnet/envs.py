@@ -53,9 +53,10 @@ class Renderer(mujoco.Renderer):
 def open_renderer(model: mujoco.MjModel, height: int, width: int) -> mujoco.Renderer:
     """A :class:`Renderer` that is closed at exit before mujoco tears its EGL display down.
 
-    Unreachable renderers are collected first: mujoco's EGL context releases the thread's
-    current context when freed, and a collection that ran in the middle of building the
-    new renderer would leave it drawing black frames.
+    Unreachable renderers are collected first: freeing one releases the thread's current
+    GL context, and a collection that ran in the middle of building the new renderer
+    (between making its context current and creating its rendering context) would leave
+    it drawing black frames.
     """
     gc.collect()
     renderer = Renderer(model, height, width)

@@ -53,12 +53,10 @@ from modnet.bank import ModuleBank
 from modnet.envs import CAMERA, open_renderer
 from modnet.modules import BankModule, check_positive_ints
 from modnet.specs import PIXELS_SHAPE
-from modnet.worlds import _SPLIT_STREAM, World, get_world
+from modnet.worlds import SCENE_STREAM, World, get_world
 
 __all__ = ["PretrainConfig", "object_slots", "objects", "pretrain_vision", "render_scenes"]
 
-PRETRAIN_STREAM = 3  # its own random stream: the condition sets (train, test, random) use 0 .. 2
-assert PRETRAIN_STREAM not in _SPLIT_STREAM.values()
 VALIDATION_FRACTION = 0.1
 
 
@@ -172,7 +170,7 @@ def pretrain_vision(
     for (factor, name), (module, module_worlds) in users.items():
         start = time.perf_counter()
         label = f"{factor}/{name}"
-        rng = np.random.default_rng([config.seed, PRETRAIN_STREAM, zlib.crc32(name.encode())])
+        rng = np.random.default_rng([config.seed, SCENE_STREAM, zlib.crc32(name.encode())])
         counts = np.diff(np.linspace(0, config.images, len(module_worlds) + 1).round().astype(int))
         scenes = [render_scenes(w, int(k), rng) for w, k in zip(module_worlds, counts, strict=True) if k]
         images = torch.from_numpy(np.concatenate([s[0] for s in scenes]))

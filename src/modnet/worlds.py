@@ -39,6 +39,9 @@ TASKS: tuple[str, ...] = tuple(_TASKS)
 CONDITION_SETS = ("train", "test", "random")
 NUM_FIXED_CONDITIONS = 4  # train and test sets, as in the paper
 _SPLIT_STREAM = {name: i for i, name in enumerate(CONDITION_SETS)}
+#: the random stream of the scenes rendered to pretrain vision modules (modnet.pretrain),
+#: apart from every condition set's, so no evaluation scene is ever a pretraining one
+SCENE_STREAM = len(_SPLIT_STREAM)
 
 
 def robot_spec(name: str) -> RobotSpec:
