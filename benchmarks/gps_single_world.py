@@ -1,10 +1,15 @@
 """Train one world with GPS and report the neural-network policy's final distances.
 
     python benchmarks/gps_single_world.py --robot three_link --task reach [--algo mdgps --iterations 10]
+    python benchmarks/gps_single_world.py --task push --conditions 4 --trace   # where the block goes
 
 The distance is the task's (end-effector or object to goal) averaged over the last 5 steps
 of a deterministic rollout of the composed policy (not the local controllers) from each
-test condition.  The last line is one JSON object:
+test condition.  Each iteration prints the trainer's diagnostics (``predicted_cost`` against
+the next iteration's ``sampled_cost`` says how far the fitted dynamics can be trusted).
+``--trace`` adds, for the last iteration's samples, each training condition's end effector to
+object and object to goal distances (means over the samples) at a few time steps.
+The last line is one JSON object:
 ``{"final_distance": [...], "success_distance": ..., "iterations": ..., "samples": ..., "wall_s": ...}``.
 """
 
@@ -19,7 +24,24 @@ import torch
 from modnet.bank import ModuleBank
 from modnet.evaluate import evaluation_env, score
 from modnet.gps.trainer import GPSConfig, GPSTrainer
-from modnet.worlds import task_spec
+from modnet.worlds import get_world, task_spec
+
+
+def last_samples_trace(trainer: GPSTrainer, robot: str, task: str) -> dict:
+    """End effector to object and object to goal distance ``[conditions][steps]`` in the last samples."""
+    world = get_world(robot, task)
+    X = trainer.states[f"{robot}/{task}"].samples.X  # [M, N, T, dX]
+    task_state = X[..., world.robot.state_dim :]
+    steps = sorted({t for t in (0, 20, 40, 60, X.shape[2] - 1) if t < X.shape[2]})
+    table = {
+        "ee_to_object": world.task.shaping_offset(task_state).norm(dim=-1).mean(1),
+        "object_to_goal": world.task.target_offset(task_state).norm(dim=-1).mean(1),
+    }
+    for name, values in table.items():
+        for m, row in enumerate(values[:, steps].tolist()):
+            print(f"condition {m} {name} at steps {steps}: " + " ".join(f"{v:.3f}" for v in row))
+    rounded = {name: values[:, steps].round(decimals=3).tolist() for name, values in table.items()}
+    return {"steps": steps} | rounded
 
 
 def main() -> None:
@@ -32,6 +54,7 @@ def main() -> None:
     parser.add_argument("--conditions", type=int, default=16, help="training conditions")
     parser.add_argument("--dropout", type=float, default=0.0)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--trace", action="store_true", help="where the object goes, per condition")
     args = parser.parse_args()
     torch.set_num_threads(1)
     start = time.perf_counter()
@@ -43,6 +66,7 @@ def main() -> None:
     for i in range(args.iterations):
         diag = trainer.step()[f"{args.robot}/{args.task}"]
         print(f"iteration {i}: " + " ".join(f"{k}={v:.3g}" for k, v in diag.items()), flush=True)
+    trace = last_samples_trace(trainer, args.robot, args.task) if args.trace else None
     distance = score(bank, args.robot, args.task, evaluation_env(args.robot, args.task)).distance
     wall = time.perf_counter() - start
     print(
@@ -56,6 +80,7 @@ def main() -> None:
                 "samples": trainer.samples["trajectories"],
                 "env_steps": trainer.samples["env_steps"],
                 "wall_s": round(wall, 1),
+                **({"trace": trace} if trace else {}),
             }
         )
     )

@@ -41,12 +41,24 @@ def test_multi_world_training_lowers_every_worlds_cost(algo):
     for world in first:
         assert last[world]["sampled_cost"] < 0.8 * first[world]["sampled_cost"], (world, first, last)
         assert last[world]["distance"] < first[world]["distance"], world
-    expected = {"distance", "sampled_cost", "expected_cost", "kl", "eta", "step_mult", "action_gap"}
+    expected = {"distance", "sampled_cost", "predicted_cost", "expected_cost"}
+    expected |= {"kl", "eta", "step_mult", "action_gap"}
     assert expected <= set(last["three_link/reach_red"])
     if algo == "badmm":
         assert "nu" in last["three_link/reach_red"]
     # 3 iterations x 4 worlds x 4 conditions x 3 samples, 20 steps each
     assert trainer.samples == {"trajectories": 144, "env_steps": 144 * 20}
+
+
+def test_on_a_contact_free_world_the_predicted_cost_is_what_the_new_controllers_then_sample():
+    """``predicted_cost`` is the task cost alone, under the fitted dynamics: on reaching (smooth
+    dynamics) it is within a factor of 2 of the next iteration's sampled cost, while BADMM's
+    C-step objective (``expected_cost``, with its dual and policy terms) is not."""
+    trainer = trainer_for([("three_link", "reach_red")], algo="badmm")
+    history = [trainer.step()["three_link/reach_red"] for _ in range(4)]
+    for before, after in zip(history[:-1], history[1:], strict=True):
+        assert 0.5 < before["predicted_cost"] / after["sampled_cost"] < 2.0, (before, after)
+    assert any(abs(d["expected_cost"] - d["predicted_cost"]) > 0.5 * d["sampled_cost"] for d in history)
 
 
 def test_a_pixel_bank_trains_its_conv_task_modules_from_rendered_samples(monkeypatch):

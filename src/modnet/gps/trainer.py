@@ -247,7 +247,19 @@ class GPSTrainer:
 
     # --- one iteration ------------------------------------------------------------------------
     def step(self) -> dict[str, dict[str, float]]:
-        """One GPS iteration over all worlds; returns per-world diagnostics."""
+        """One GPS iteration over all worlds; returns per-world diagnostics (means over conditions).
+
+        - ``distance``, ``sampled_cost``: the task's distance and the (time-weighted) cost of
+          this iteration's samples;
+        - ``predicted_cost``: the new controllers' task cost predicted under this iteration's
+          fitted dynamics; compare it with the next iteration's ``sampled_cost`` to see how
+          far the fitted dynamics can be trusted;
+        - ``expected_cost``: the C-step's own objective at its solution (under BADMM it adds
+          the dual and policy terms, so it is not comparable with ``sampled_cost``);
+        - ``kl``, ``eta``, ``step_mult``: the C-step's KL to its reference, its Lagrange
+          multiplier and the step-size multiplier; ``action_gap``: controller vs policy mean
+          action at the samples; ``nu`` (BADMM): the policy-KL weight; ``regression_loss``.
+        """
         start = time.perf_counter()
         states = list(self.states.values())
         from_policy = self.iteration == 0 and self.config.init_from_policy
@@ -393,7 +405,9 @@ class GPSTrainer:
             )
         state.eta = result.eta
         state.controller.set_gains(result.gains)
+        predicted = laplace_cost(result.gains, state.current.dynamics, state.current.cost)
         state.diagnostics.update(
+            predicted_cost=float(predicted.mean()),
             expected_cost=float(result.expected_cost.mean()),
             kl=float(result.kl.mean()),
             eta=float(result.eta.mean()),
