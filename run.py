@@ -244,6 +244,8 @@ def main(cfg: DictConfig) -> None:
         results["samples"] = trainer.samples
         if (run_dir / PRETRAIN_REPORT).exists():
             results["pretrain"] = json.loads((run_dir / PRETRAIN_REPORT).read_text())
+            # a resumed run reports the pretraining time its first attempt measured, per module
+            seconds.setdefault("pretrain", sum(f["seconds"] for f in results["pretrain"].values()))
         seconds["evaluate"] = time.perf_counter() - start
 
         # 5. optionally: GPS on the held-out world from four starts
