@@ -5,7 +5,10 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
+
+from modnet.worlds import get_world
 
 BENCHMARKS = Path(__file__).resolve().parent.parent / "benchmarks"
 
@@ -37,3 +40,15 @@ def test_pretrain_benchmark_reports_every_vision_module_and_a_ratio_against_mj_s
     for module in figures["modules"].values():
         assert list(module["object_errors"]) == ["red", "green", "yellow", "black"]
     assert figures["render_scene_vs_mj_step"] > 1  # a frame costs more than a physics step
+
+
+def test_gps_single_world_traces_where_the_object_goes():
+    """``--trace`` reads the right state slots: at step 0 every block is where its condition put it."""
+    options = "--task push --conditions 4 --samples 2 --iterations 1 --trace".split()
+    figures = last_json("gps_single_world.py", *options, timeout=600)
+    trace = figures["trace"]
+    assert trace["steps"] == [0, 20, 40, 60, 99]
+    params = get_world("three_link", "push").conditions("train", 0, 4)[:, 3:]  # block (x, y), goal (x, y)
+    start = np.hypot(*(params[:, :2] - params[:, 2:]).T)
+    np.testing.assert_allclose([row[0] for row in trace["object_to_goal"]], start, atol=2e-3)
+    assert all(len(row) == 5 and row[0] > 0.9 for row in trace["ee_to_object"])  # the arm starts far away
