@@ -405,9 +405,7 @@ class GPSTrainer:
             )
         state.eta = result.eta
         state.controller.set_gains(result.gains)
-        predicted = laplace_cost(result.gains, state.current.dynamics, state.current.cost)
         state.diagnostics.update(
-            predicted_cost=float(predicted.mean()),
             expected_cost=float(result.expected_cost.mean()),
             kl=float(result.kl.mean()),
             eta=float(result.eta.mean()),
@@ -529,6 +527,9 @@ class GPSTrainer:
         }
 
     def _diagnose(self, state: WorldState) -> dict[str, float]:
+        """The iteration's figures; the prediction once, for the controllers the last C-step left."""
+        predicted = laplace_cost(state.controller.gains, state.current.dynamics, state.current.cost)
+        state.diagnostics["predicted_cost"] = float(predicted.mean())
         return dict(sorted(state.diagnostics.items()))
 
     # --- checkpoints --------------------------------------------------------------------------------
