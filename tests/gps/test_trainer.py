@@ -1,5 +1,6 @@
 """GPS over several worlds: training lowers every world's cost, errors name their place, state resumes."""
 
+import copy
 import io
 
 import pytest
@@ -9,6 +10,7 @@ import modnet.gps.trainer as trainer_module
 from modnet.bank import ModuleBank
 from modnet.gps.errors import NumericalError
 from modnet.gps.trainer import GPSConfig, GPSTrainer
+from modnet.specs import TORQUE_LIMIT
 
 ROBOTS, TASKS = ["three_link", "four_link"], ["reach_red", "reach_black"]
 GRID = [(r, t) for r in ROBOTS for t in TASKS]
@@ -150,6 +152,27 @@ def test_fine_tuning_starts_from_the_composed_policy():
     tuned = GPSTrainer(teacher.bank, GRID[:1], small_config(init_from_policy=True))
     first = tuned.step()["three_link/reach_red"]
     assert first["distance"] < 0.7 * scratch["distance"]
+
+
+def test_fine_tuning_starts_from_the_policy_as_it_acts_in_the_world():
+    """A composed policy that asks for far more torque than the arm has (untrained on its world,
+    as in fine-tuning) starts the controllers from what it applies: its clipped actions.
+
+    Linearising what it asks for gave controllers with gains in the hundreds, whose fitted
+    closed loop grows several-fold per step; the first C-step then found no positive-definite
+    Q_uu at any eta (three_link/drawer_horizontal from a transferred bank).
+    """
+    bank = ModuleBank.build(["three_link"], ["reach_red"], seed=0, dropout=0.0)
+    with torch.no_grad():
+        bank.factor_modules["robot"]["three_link"].module.head.mean.weight.mul_(300.0)
+    untouched = copy.deepcopy(bank)  # the step's S-step trains the bank
+    trainer = GPSTrainer(bank, GRID[:1], small_config(init_from_policy=True, algo="badmm"))
+    trainer.step()
+    (state,) = trainer.states.values()
+    (asked,) = untouched.eval().forward_worlds({state.name: state.samples.obs}).values()
+    assert asked["loc"].abs().max() > 10 * TORQUE_LIMIT  # the network does saturate
+    started = state.current.gains.mean_actions(state.samples.X)  # the controllers' first gains
+    assert started.abs().max() < 1.25 * TORQUE_LIMIT
 
 
 def test_unknown_algorithm_and_missing_modules():

@@ -53,6 +53,7 @@ from modnet.gps.loss import PolicyRegressionLoss
 from modnet.gps.lqr import LQRConfig, adapt_step_mult, kl_divergence, laplace_cost, lqr_forward
 from modnet.gps.lqr import solve_kl_constrained_lqr as c_step
 from modnet.gps.sampling import POLICY_KEYS, STATE_KEYS, Samples, WorldSampler, state_of
+from modnet.specs import TORQUE_LIMIT
 from modnet.worlds import CONDITION_SETS, NUM_FIXED_CONDITIONS
 
 PHASES = ("sampling", "cost", "dynamics", "lqr", "s_step")
@@ -270,7 +271,7 @@ class GPSTrainer:
         fresh = self.iteration == 0 and not from_policy
         self.bank.fit_normalization({s.name: s.samples.obs for s in states}, keep_function=not fresh)
         if from_policy:  # the controllers start where the composed policy is
-            self._policy_outputs(states)
+            self._policy_outputs(states, as_applied=True)
             for state in states:
                 state.controller.set_gains(state.policy)
                 state.current.gains = frozen(state.policy)
@@ -327,14 +328,20 @@ class GPSTrainer:
 
     # --- the policy around the samples ----------------------------------------------------------
     @torch.no_grad()
-    def _policy_outputs(self, states: Sequence[WorldState]) -> None:
-        """The composed policies' mean actions and covariances at every world's samples."""
+    def _policy_outputs(self, states: Sequence[WorldState], as_applied: bool = False) -> None:
+        """The composed policies' mean actions and covariances at every world's samples.
+
+        With ``as_applied`` the means are clipped to the torque limits first, so the
+        linearisation describes what the policy does in the world rather than what it asks for.
+        """
         self.bank.eval()
         out = self._forward_samples(states)
         self.bank.train()
         for state, result in zip(states, out, strict=True):
             mean = result["loc"].to(torch.float64)
             check_finite("policy action", mean, world=state.name, iteration=self.iteration)
+            if as_applied:
+                mean = mean.clamp(-TORQUE_LIMIT, TORQUE_LIMIT)
             state.policy_mean = mean
             state.diagnostics["action_gap"] = float(
                 (state.current.gains.mean_actions(state.samples.X) - mean).norm(dim=-1).mean()
