@@ -289,7 +289,7 @@ def start_config(config: GPSConfig, start: str) -> GPSConfig:
     Only ``scratch_shaping`` keeps the cost's shaping term (when ``config.shaping``): the
     transferred starts must learn from the task's cost alone, which is the paper's point.
     ``composed`` and ``wrong_task`` sample their first iteration from the network and start
-    the controllers from its linearisation (``init_from_policy``).
+    the controllers from its linearisation, on its actions as applied (``init_from_policy``).
     """
     if start not in FINETUNE_STARTS:
         raise ValueError(f"unknown fine-tuning start {start!r}; valid starts: {', '.join(FINETUNE_STARTS)}")

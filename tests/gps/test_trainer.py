@@ -154,25 +154,29 @@ def test_fine_tuning_starts_from_the_composed_policy():
     assert first["distance"] < 0.7 * scratch["distance"]
 
 
-def test_fine_tuning_starts_from_the_policy_as_it_acts_in_the_world():
+@pytest.mark.parametrize("algo", ["mdgps", "badmm"])
+def test_fine_tuning_starts_from_the_policy_as_it_acts_in_the_world(algo):
     """A composed policy that asks for far more torque than the arm has (untrained on its world,
-    as in fine-tuning) starts the controllers from what it applies: its clipped actions.
+    as in fine-tuning) starts the controllers from what it applies: its clipped actions; and the
+    first C-step stays near those, with a moderate eta.
 
-    Linearising what it asks for gave controllers with gains in the hundreds, whose fitted
-    closed loop grows several-fold per step; the first C-step then found no positive-definite
-    Q_uu at any eta (three_link/drawer_horizontal from a transferred bank).
+    Linearising what it asks for gave controllers with huge gains and a first
+    C-step whose eta ran to thousands (here, MDGPS) or past its cap (three_link/drawer_horizontal
+    from a transferred bank).
     """
     bank = ModuleBank.build(["three_link"], ["reach_red"], seed=0, dropout=0.0)
     with torch.no_grad():
         bank.factor_modules["robot"]["three_link"].module.head.mean.weight.mul_(300.0)
     untouched = copy.deepcopy(bank)  # the step's S-step trains the bank
-    trainer = GPSTrainer(bank, GRID[:1], small_config(init_from_policy=True, algo="badmm"))
-    trainer.step()
+    config = small_config(init_from_policy=True, algo=algo, sgd_steps=8, horizon=10)
+    trainer = GPSTrainer(bank, GRID[:1], config)
+    first = trainer.step()["three_link/reach_red"]
     (state,) = trainer.states.values()
     (asked,) = untouched.eval().forward_worlds({state.name: state.samples.obs}).values()
     assert asked["loc"].abs().max() > 10 * TORQUE_LIMIT  # the network does saturate
     started = state.current.gains.mean_actions(state.samples.X)  # the controllers' first gains
     assert started.abs().max() < 1.25 * TORQUE_LIMIT
+    assert first["eta"] < 100, first
 
 
 def test_unknown_algorithm_and_missing_modules():

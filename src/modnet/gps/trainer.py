@@ -94,7 +94,8 @@ class GPSConfig:
     )
     badmm: BADMMConfig = field(default_factory=BADMMConfig)
     #: fine-tuning: sample the first iteration from the bank's composed policies and start the
-    #: controllers from their linearisation (instead of fitting the policy to hold-position ones)
+    #: controllers from their linearisation (instead of fitting the policy to hold-position ones),
+    #: taken in that iteration on their actions as applied, clipped to the torque limits
     init_from_policy: bool = False
     seed: int = 0
 
@@ -270,17 +271,17 @@ class GPSTrainer:
         # first layers absorb the change, so no training is undone.
         fresh = self.iteration == 0 and not from_policy
         self.bank.fit_normalization({s.name: s.samples.obs for s in states}, keep_function=not fresh)
-        if from_policy:  # the controllers start where the composed policy is
-            self._policy_outputs(states, as_applied=True)
+        if from_policy:  # the controllers start where the composed policy is, as it acts
+            self._policy_outputs(states)
             for state in states:
                 state.controller.set_gains(state.policy)
                 state.current.gains = frozen(state.policy)
         elif fresh:
             self._s_step(self.config.initial_sgd_steps, {s.name: self._controller_targets(s) for s in states})
         if self.config.algo == "mdgps":
-            self._mdgps_update(states)
+            self._mdgps_update(states, outputs_ready=from_policy)
         else:
-            self._badmm_update(states)
+            self._badmm_update(states, outputs_ready=from_policy)
         diagnostics = {s.name: self._diagnose(s) for s in states}
         self.history.append(diagnostics)
         self.iteration += 1
@@ -328,12 +329,16 @@ class GPSTrainer:
 
     # --- the policy around the samples ----------------------------------------------------------
     @torch.no_grad()
-    def _policy_outputs(self, states: Sequence[WorldState], as_applied: bool = False) -> None:
-        """The composed policies' mean actions and covariances at every world's samples.
+    def _policy_outputs(self, states: Sequence[WorldState]) -> None:
+        """The composed policies' mean actions at every world's samples, and their linearisation
+        (which also feeds the policy prior).
 
-        With ``as_applied`` the means are clipped to the torque limits first, so the
-        linearisation describes what the policy does in the world rather than what it asks for.
+        In the first iteration of fine-tuning (``init_from_policy``) the means are clipped to the
+        torque limits first: a network untrained on its world can ask for far more torque than
+        the arm has, and the controllers must start from, and the first C-step stay near, what
+        it does in the world.  Afterwards the network imitates the controllers, as in training.
         """
+        as_applied = self.iteration == 0 and self.config.init_from_policy
         self.bank.eval()
         out = self._forward_samples(states)
         self.bank.train()
@@ -419,16 +424,19 @@ class GPSTrainer:
             step_mult=float(state.step_mult.mean()),
         )
 
-    def _mdgps_update(self, states: Sequence[WorldState]) -> None:
-        """Mirror-descent GPS: C-step in a KL trust region around the linearised policy."""
-        self._policy_outputs(states)
+    def _mdgps_update(self, states: Sequence[WorldState], outputs_ready: bool = False) -> None:
+        """Mirror-descent GPS: C-step in a KL trust region around the linearised policy
+        (computed here unless ``outputs_ready``: the policy is unchanged since it was)."""
+        if not outputs_ready:
+            self._policy_outputs(states)
         for state in states:
             self._adapt_step(state)
             self._c_step(state, state.current.cost, state.policy)
         self._s_step(self.config.sgd_steps, {s.name: self._controller_targets(s) for s in states})
 
-    def _badmm_update(self, states: Sequence[WorldState]) -> None:
-        """BADMM: alternate S-step, dual step and C-step ``inner_iterations`` times."""
+    def _badmm_update(self, states: Sequence[WorldState], outputs_ready: bool = False) -> None:
+        """BADMM: alternate S-step, dual step and C-step ``inner_iterations`` times (the first
+        round reuses the policy's outputs when ``outputs_ready``)."""
         cfg = self.config.badmm
         for state in states:
             self._adapt_step(state)
@@ -437,7 +445,8 @@ class GPSTrainer:
             if self.iteration > 0 or inner > 0:
                 targets = {s.name: self._badmm_targets(s) for s in states}
                 self._s_step(max(1, self.config.sgd_steps // cfg.inner_iterations), targets)
-            self._policy_outputs(states)
+            if inner > 0 or not outputs_ready:
+                self._policy_outputs(states)
             for state in states:
                 gains = state.controller.gains
                 if self.iteration > 0 or inner > 0:
