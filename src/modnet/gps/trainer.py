@@ -276,6 +276,7 @@ class GPSTrainer:
             for state in states:
                 state.controller.set_gains(state.policy)
                 state.current.gains = frozen(state.policy)
+                self._record_action_gap(state)  # against the controllers it now samples with
         elif fresh:
             self._s_step(self.config.initial_sgd_steps, {s.name: self._controller_targets(s) for s in states})
         if self.config.algo == "mdgps":
@@ -348,9 +349,7 @@ class GPSTrainer:
             if as_applied:
                 mean = mean.clamp(-TORQUE_LIMIT, TORQUE_LIMIT)
             state.policy_mean = mean
-            state.diagnostics["action_gap"] = float(
-                (state.current.gains.mean_actions(state.samples.X) - mean).norm(dim=-1).mean()
-            )
+            self._record_action_gap(state)
             with self._timed("dynamics"):
                 state.policy_prior.update(
                     state.samples.X.transpose(0, 1),
@@ -366,6 +365,12 @@ class GPSTrainer:
                     world=state.name,
                     iteration=self.iteration,
                 )
+
+    @staticmethod
+    def _record_action_gap(state: WorldState) -> None:
+        """Diagnostic: the sampling controllers' mean action vs the policy's, at the samples."""
+        gap = state.current.gains.mean_actions(state.samples.X) - state.policy_mean
+        state.diagnostics["action_gap"] = float(gap.norm(dim=-1).mean())
 
     def _forward_samples(self, states: Sequence[WorldState]) -> list[TensorDictBase]:
         """The bank's outputs at every world's samples ``[M, N, T]``, in one
