@@ -25,7 +25,6 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.data import LazyTensorStorage, ReplayBuffer
 
 from modnet.envs import make_env
-from modnet.specs import TORQUE_LIMIT
 from modnet.worlds import get_world
 
 STATE_KEYS = (("robot", "state"), ("task", "state"))  # x = [robot_state, task_state]
@@ -37,10 +36,13 @@ POLICY_KEYS = (*STATE_KEYS, ("task", "ee"), ("task", "pixels"))
 class Samples:
     """One iteration's trajectories of one world, laid out ``[M, N, T, ...]``.
 
-    ``X`` are the states each action was taken in, ``U`` the actions as applied (clipped
-    to the torque limit), ``distance`` each trajectory's final distance (the paper's
-    metric, :meth:`~modnet.envs.WorldEnv.final_distance`); ``obs`` the policy inputs
-    (states, and pixels when the env renders) in the same layout.
+    ``X`` are the states each action was taken in; ``U`` the actions as commanded, before the
+    env clips them to the torque limit (as the original GPS code records them, MuJoCo's
+    ctrlrange clipping inside its step). The dynamics fitted to them see that torque beyond
+    the limit does little, so the LQR does not plan with torque the arm lacks. ``distance``
+    is each trajectory's final distance (the paper's metric,
+    :meth:`~modnet.envs.WorldEnv.final_distance`); ``obs`` the policy inputs (states, and
+    pixels when the env renders) in the same layout.
     """
 
     X: torch.Tensor  # [M, N, T, dX] float64
@@ -125,7 +127,7 @@ class WorldSampler:
         N, M = self.samples_per_condition, self.num_conditions
         distance = self.env.final_distance(rollout).reshape(N, M).T
         td = to_condition_major(rollout, M)
-        U = td["action"].to(torch.float64).clamp(-TORQUE_LIMIT, TORQUE_LIMIT)
+        U = td["action"].to(torch.float64)
         return Samples(
             X=state_of(td),
             U=U,
