@@ -160,9 +160,11 @@ def test_fine_tuning_starts_from_the_policy_as_it_acts_in_the_world(algo):
     as in fine-tuning) starts the controllers from what it applies: its clipped actions; and the
     first C-step stays near those, with a moderate eta.
 
-    Linearising what it asks for gave controllers with huge gains and a first
-    C-step whose eta ran to thousands (here, MDGPS) or past its cap (three_link/drawer_horizontal
-    from a transferred bank).
+    Linearising what it asks for gave controllers with huge gains and, while the dynamics were
+    fitted to the clipped torques (before commit 9faa745), a first C-step whose eta ran to
+    thousands (here, MDGPS) or past its cap (three_link/drawer_horizontal from a transferred
+    bank). Fitted to the torques asked for, the unclipped start no longer blows up here (eta
+    0.12), but it still starts from torque the arm does not have.
     """
     bank = ModuleBank.build(["three_link"], ["reach_red"], seed=0, dropout=0.0)
     with torch.no_grad():
