@@ -209,6 +209,7 @@ def main(cfg: DictConfig) -> None:
     except (ConfigError, UniverseError, CheckpointError) as err:
         sys.exit(f"run.py: {err}")
     seconds: dict[str, float] = {}
+    code = report.code_version()  # as it started (a resumed run: its last part)
 
     with log:
         log.config(flatten(OmegaConf.to_container(cfg, resolve=True)))
@@ -258,6 +259,7 @@ def main(cfg: DictConfig) -> None:
 
         # 6. report: the table, zero_shot.csv, results.json, figures, logger
         results["seconds"] = {k: round(v, 1) for k, v in seconds.items()}
+        results["code"] = code
         print(report.zero_shot_table(results))
         report.write_zero_shot_csv(results, run_dir / "zero_shot.csv")
         report.write_json(run_dir / "results.json", results)

@@ -10,8 +10,8 @@
 Each writes ``docs/results/<experiment>.json`` (and, for a sweep, the heatmap
 ``docs/<experiment>.png``; for a fine-tuning run, its curves ``docs/<experiment>_finetune.png``)
 from the jobs' own ``results.json`` files, with the command that produced them (read from
-Hydra's ``.hydra/overrides.yaml``), the environment samples and the wall time, and the
-paper's numbers where the paper has that experiment.  The last line is the written JSON.
+Hydra's ``.hydra/overrides.yaml``), the environment samples, the wall time and the code's commit, and
+the paper's numbers where the paper has that experiment.  The last line is the written JSON.
 """
 
 from __future__ import annotations
@@ -115,6 +115,7 @@ def zero_shot(run_dir: Path, experiment: str, docs: Path = DOCS) -> dict:
         "success_rate": {name: methods[name]["success_rate"] for name in names},
         "samples": results["samples"],
         "wall_s": _wall_s(results),
+        "code": results.get("code"),  # None: run before results.json recorded it
     }
     paper = PAPER_COUNTERPART.get(results["universe"], results["universe"])
     if paper in PAPER:
@@ -183,6 +184,7 @@ def lowo(sweep_dir: Path, experiment: str, docs: Path = DOCS) -> dict:
                 ),
                 "samples": r["samples"],
                 "wall_s": _wall_s(r),
+                "code": r.get("code"),
             }
         )
     heatmap = collect(sweep_dir)
@@ -231,6 +233,7 @@ def algorithms(run_dirs: list[Path], experiment: str) -> dict:
                 "final_sample_distance": _round(np.mean([w["distance"] for w in last_iteration(run_dir)])),
                 "samples": r["samples"],
                 "wall_s": _wall_s(r),
+                "code": r.get("code"),
             }
         )
     return {"experiment": experiment, "runs": runs}

@@ -105,3 +105,6 @@ def test_a_two_job_joblib_multirun_writes_two_results_and_aggregates(tmp_path):
     assert set(one["positions"][0]) == {"ours", "random", "wrong_task"} and one["wall_s"] > 0
     both = publish("algorithms", str(job), str(job), "--experiment", "tiny_algorithms")
     assert [r["algo"] for r in both["runs"]] == ["badmm", "badmm"]
+    code = json.loads((job / "results.json").read_text())["code"]  # the commit that ran, in every form
+    assert one["code"] == code and [r["code"] for r in both["runs"]] == [code, code]
+    assert code in [j["code"] for j in sweep["jobs"]]

@@ -18,6 +18,7 @@ from modnet.bank import ModuleBank
 from modnet.checkpoint import CheckpointError, load_checkpoint
 from modnet.config import ConfigError, LoggerConfig, RunConfig, register_configs, validate
 from modnet.loggers import RunLogger
+from modnet.report import code_version
 
 ROOT = Path(__file__).resolve().parents[1]
 ITERATIONS = 4  # GPS iterations of the tiny runs here
@@ -98,6 +99,7 @@ def test_tiny_pipeline_end_to_end_in_under_two_minutes(tiny_run):
     assert set(results["finetune"]) == {"composed", "wrong_task", "scratch_shaping", "scratch_no_shaping"}
     assert all(len(curve) == 2 for curve in results["finetune"].values())  # before + 1 iteration
     assert set(results["finetune_samples"]) == set(results["finetune"])
+    assert results["code"] == code_version()  # the commit that ran; None/None for an installed copy
     for name in [
         "learning_curves.png",
         "zero_shot.png",
@@ -126,10 +128,11 @@ def publish_zero_shot(run_dir: Path, experiment: str, docs: Path) -> dict:
     return json.loads(published.stdout.splitlines()[-1])
 
 
-def test_published_fine_tuning_has_curves_iterations_to_success_and_samples(tiny_run, tmp_path):
+def test_published_fine_tuning_has_curves_iterations_to_success_samples_and_commit(tiny_run, tmp_path):
     run_dir, done, _ = tiny_run
     assert done.returncode == 0, done.stderr[-3000:]
-    tuning = publish_zero_shot(run_dir, "tiny_finetune", tmp_path)["finetune"]
+    published = publish_zero_shot(run_dir, "tiny_finetune", tmp_path)
+    tuning = published["finetune"]
     results = json.loads((run_dir / "results.json").read_text())
     assert tuning["curves"] == {s: pytest.approx(c, abs=1e-4) for s, c in results["finetune"].items()}
     for start, curve in tuning["curves"].items():
@@ -137,6 +140,7 @@ def test_published_fine_tuning_has_curves_iterations_to_success_and_samples(tiny
         below = [i for i, d in enumerate(curve) if d < results["success_distance"]]
         assert reached == (below[0] if below else None)
     assert tuning["samples"] == results["finetune_samples"]
+    assert published["code"] == results["code"]
     assert (tmp_path / "tiny_finetune_finetune.png").read_bytes() == (run_dir / "finetune.png").read_bytes()
 
 

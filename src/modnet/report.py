@@ -26,6 +26,7 @@ import csv
 import io
 import json
 import os
+import subprocess
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -38,6 +39,7 @@ from matplotlib.ticker import MaxNLocator
 from modnet.files import write_atomically
 
 __all__ = [
+    "code_version",
     "final_positions_strip",
     "plot_finetune",
     "plot_learning_curves",
@@ -58,6 +60,39 @@ def write_json(path: str | os.PathLike, data: Any) -> Path:
     text = json.dumps(data, indent=2)
     write_atomically(path, lambda tmp: tmp.write_text(text))
     return path
+
+
+def code_version(package_dir: str | os.PathLike | None = None) -> dict[str, Any]:
+    """The git commit of the modnet code that ran, for a run's ``results.json``.
+
+    ``{"commit": sha, "dirty": bool}`` where ``package_dir`` (default: this package) is the
+    ``src/modnet`` of a git checkout, ``dirty`` meaning its tracked files differ from the
+    commit; ``{"commit": None, "dirty": None}`` for an installed copy, which has no commit
+    (a site-packages inside some other repository does not count as a checkout).
+
+    Examples:
+        >>> version = code_version("/")  # not a modnet checkout
+        >>> version
+        {'commit': None, 'dirty': None}
+    """
+    package = Path(package_dir or Path(__file__).parent).resolve()
+
+    def git(*args: str) -> str:
+        done = subprocess.run(
+            ["git", *args], cwd=package, capture_output=True, text=True, check=True, timeout=30
+        )
+        return done.stdout.strip()
+
+    try:
+        top = Path(git("rev-parse", "--show-toplevel")).resolve()
+        if package != top / "src" / "modnet":
+            raise ValueError(f"{package} is not the src/modnet of the checkout at {top}")
+        return {
+            "commit": git("rev-parse", "HEAD"),
+            "dirty": bool(git("status", "--porcelain", "--untracked-files=no")),
+        }
+    except (OSError, ValueError, subprocess.SubprocessError):
+        return {"commit": None, "dirty": None}
 
 
 def _columns(methods: Mapping[str, Any]) -> list[tuple[str, dict[str, Any]]]:

@@ -1,0 +1,52 @@
+"""modnet.report: what a run records about the code that produced it."""
+
+import shutil
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from modnet.report import code_version
+
+pytestmark = pytest.mark.skipif(shutil.which("git") is None, reason="needs git")
+
+
+def git(repo: Path, *args: str) -> str:
+    done = subprocess.run(
+        ["git", "-c", "user.name=modnet", "-c", "user.email=modnet@example.org", *args],
+        cwd=repo,
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    return done.stdout.strip()
+
+
+@pytest.fixture
+def checkout(tmp_path):
+    """A git repository laid out like modnet's: the package under src/modnet, committed."""
+    package = tmp_path / "src" / "modnet"
+    package.mkdir(parents=True)
+    (package / "__init__.py").write_text("x = 1\n")
+    git(tmp_path, "init", "-q")
+    git(tmp_path, "add", ".")
+    git(tmp_path, "commit", "-q", "-m", "first")
+    return tmp_path
+
+
+def test_a_checkout_reports_its_commit_and_whether_tracked_files_changed(checkout):
+    package = checkout / "src" / "modnet"
+    assert code_version(package) == {"commit": git(checkout, "rev-parse", "HEAD"), "dirty": False}
+    (checkout / "notes.txt").write_text("untracked files do not change the code\n")
+    assert code_version(package)["dirty"] is False
+    (package / "__init__.py").write_text("x = 2\n")
+    assert code_version(package) == {"commit": git(checkout, "rev-parse", "HEAD"), "dirty": True}
+
+
+def test_an_installed_copy_has_no_commit_even_inside_another_repository(checkout, tmp_path_factory):
+    installed = checkout / ".venv" / "lib" / "site-packages" / "modnet"  # a venv inside a project
+    installed.mkdir(parents=True)
+    assert code_version(installed) == {"commit": None, "dirty": None}
+    alone = tmp_path_factory.mktemp("site-packages") / "modnet"  # no repository at all
+    alone.mkdir()
+    assert code_version(alone) == {"commit": None, "dirty": None}
