@@ -71,11 +71,11 @@ def code_version(package_dir: str | os.PathLike | None = None) -> dict[str, Any]
     (a site-packages inside some other repository does not count as a checkout).
 
     Examples:
-        >>> version = code_version("/")  # not a modnet checkout
-        >>> version
+        >>> code_version("/")  # not a modnet checkout
         {'commit': None, 'dirty': None}
     """
     package = Path(package_dir or Path(__file__).parent).resolve()
+    unknown = {"commit": None, "dirty": None}
 
     def git(*args: str) -> str:
         done = subprocess.run(
@@ -84,15 +84,14 @@ def code_version(package_dir: str | os.PathLike | None = None) -> dict[str, Any]
         return done.stdout.strip()
 
     try:
-        top = Path(git("rev-parse", "--show-toplevel")).resolve()
-        if package != top / "src" / "modnet":
-            raise ValueError(f"{package} is not the src/modnet of the checkout at {top}")
+        if package != Path(git("rev-parse", "--show-toplevel")).resolve() / "src" / "modnet":
+            return unknown
         return {
             "commit": git("rev-parse", "HEAD"),
             "dirty": bool(git("status", "--porcelain", "--untracked-files=no")),
         }
-    except (OSError, ValueError, subprocess.SubprocessError):
-        return {"commit": None, "dirty": None}
+    except (OSError, subprocess.SubprocessError):  # no git, or not inside a repository
+        return unknown
 
 
 def _columns(methods: Mapping[str, Any]) -> list[tuple[str, dict[str, Any]]]:
