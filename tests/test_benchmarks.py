@@ -1,5 +1,6 @@
 """The benchmark scripts: each ends with one JSON line; the single-world GPS run succeeds (slow)."""
 
+import importlib.util
 import json
 import subprocess
 import sys
@@ -7,6 +8,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
+from tensordict import TensorDict
 
 from modnet.worlds import get_world
 
@@ -52,3 +55,51 @@ def test_gps_single_world_traces_where_the_object_goes():
     start = np.hypot(*(params[:, :2] - params[:, 2:]).T)
     np.testing.assert_allclose([row[0] for row in trace["object_to_goal"]], start, atol=2e-3)
     assert all(len(row) == 5 and row[0] > 0.9 for row in trace["ee_to_object"])  # the arm starts far away
+
+
+def load_benchmark(name: str):
+    spec = importlib.util.spec_from_file_location(f"benchmark_{name}", BENCHMARKS / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_object_contact_measures_approach_displacement_and_progress_towards_the_goal():
+    """A block pushed 0.1 towards its goal, then one pushed 0.1 away: both moved, one progressed."""
+    contact = load_benchmark("object_contact").contact
+    task = get_world("three_link", "push").task
+    T = 10
+
+    def xy(x: float, y: float) -> torch.Tensor:
+        return torch.tensor([x, y], dtype=torch.float64)
+
+    state = torch.zeros(2, T + 1, task.state_dim, dtype=torch.float64)
+    state[..., task.slot("goal")] = xy(0.5, 0.5)
+    block = xy(0.2, 0.5) + torch.linspace(0, 0.1, T + 1, dtype=torch.float64)[:, None] * xy(1.0, 0.0)
+    state[0, :, task.slot("block")] = block
+    state[1, :, task.slot("block")] = 2 * block[0] - block  # moves 0.1 the other way
+    state[..., task.slot("ee")] = state[..., task.slot("block")] - xy(0.06, 0.0)
+    state[:, 0, task.slot("ee")] = xy(0.0, 0.0)  # starts far away
+    td = TensorDict(
+        {"task": {"state": state[:, :-1]}, "next": {"task": {"state": state[:, 1:]}}}, batch_size=[2, T]
+    )
+    found = contact(task, td)
+    torch.testing.assert_close(found["closest_approach"], torch.full((2,), 0.06, dtype=torch.float64))
+    torch.testing.assert_close(found["object_moved"], torch.full((2,), 0.1, dtype=torch.float64))
+    assert found["progress"][0] == pytest.approx(0.1) and found["progress"][1] < 0
+
+
+def test_object_contact_on_real_physics_moves_nothing_it_does_not_touch():
+    """An untrained network in three_link/push: wherever the tip stays out of reach of the block
+    (half-width 0.05 plus the tip's 0.02), the block does not move."""
+    from modnet.bank import ModuleBank
+    from modnet.evaluate import evaluation_env, rollout
+
+    contact = load_benchmark("object_contact").contact
+    bank = ModuleBank.build(["three_link"], ["push"], seed=0)
+    env = evaluation_env("three_link", "push", horizon=30)
+    td, _ = rollout(bank, "three_link", "push", env)
+    found = contact(env.world.task, td)
+    far = found["closest_approach"] > 0.1
+    assert far.any()
+    assert (found["object_moved"][far] == 0).all(), found

@@ -309,6 +309,18 @@ def test_score_bank_scores_every_world_and_agrees_with_the_zero_shot_table(tiny_
     assert figures["training_worlds"]["mean"] == pytest.approx(sum(training) / len(training), abs=1e-4)
 
 
+def test_object_contact_names_the_valid_worlds_and_refuses_a_task_without_an_object(tiny_run):
+    run_dir, done, _ = tiny_run
+    assert done.returncode == 0, done.stderr[-3000:]
+    script = str(ROOT / "benchmarks" / "object_contact.py")
+    unknown = subprocess.run(
+        [sys.executable, script, str(run_dir), "--world", "four_link/push"], capture_output=True, text=True
+    )
+    assert unknown.returncode == 2 and "valid: three_link/reach_red" in unknown.stderr, unknown.stderr
+    reach = subprocess.run([sys.executable, script, str(run_dir)], capture_output=True, text=True)
+    assert reach.returncode == 2 and "moves nothing but the end effector" in reach.stderr, reach.stderr
+
+
 def test_options_at_their_do_nothing_defaults_stay_out_of_the_checkpoint_identity():
     """A run saved before pretraining and the softmax temperature existed still resumes;
     turning either on makes a different run."""

@@ -51,6 +51,7 @@ __all__ = [
     "ZeroShot",
     "evaluation_env",
     "finetune",
+    "misfit",
     "rollout",
     "score",
     "start_config",
@@ -214,7 +215,7 @@ def score(bank: ModuleBank, robot: str, policy_task: str, env: WorldEnv) -> Scor
     return Scores(env.final_distance(td).tolist(), env.world.task.success_distance)
 
 
-def _misfit(bank: ModuleBank, robot: str, task: str, env: WorldEnv) -> str | None:
+def misfit(bank: ModuleBank, robot: str, task: str, env: WorldEnv) -> str | None:
     """Why ``compose(robot, task)`` cannot read ``env``'s observations (None when it can)."""
     for module in bank.parts(bank.world(robot, task)).values():
         for key, width in module.arch.observations:
@@ -246,7 +247,7 @@ def zero_shot(
     for other in bank_tasks(bank):
         if other == task:
             continue
-        reason = _misfit(bank, robot, other, env)
+        reason = misfit(bank, robot, other, env)
         if reason is None:
             wrong[other] = score(bank, robot, other, env)
         else:

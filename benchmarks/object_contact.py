@@ -1,0 +1,144 @@
+"""Does a policy reach, touch and move the object of a held-out manipulation world?
+
+Fine-tuning without the cost's shaping term (the paper's composed and wrong-task starts)
+learns only from samples that move the object: until one does, every sample costs the same.
+This measures how far each start is from that, on a run's held-out world (or, for
+comparison, on one of its training worlds with ``--world robot/task``):
+
+1. Each policy (the composed modules, the random network and each wrong task module) acts
+   with mean actions from the 4 test positions.  Per position: the task's distance (as in
+   the zero-shot table), the closest the end effector comes to the object, and the most the
+   object moves from where it started.
+2. The composed policy then samples as fine-tuning's first iteration does, from its own
+   Gaussian (``--std-scale`` widens it), ``--samples`` times from each of ``--conditions``
+   random positions; it counts the samples that move the object more than ``--moved``, and
+   those that bring it that much closer to its goal (the only ones whose cost differs).
+
+Prints a line per policy, then ONE JSON object on its last line.
+
+    python benchmarks/object_contact.py outputs/manipulation
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import torch
+from tensordict import TensorDictBase
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from modnet.bank import ModuleBank
+from modnet.evaluate import bank_tasks, evaluating, evaluation_env, misfit, rollout
+from modnet.specs import TaskDefinition
+from modnet.universes import get_universe
+
+
+def contact(task: TaskDefinition, td: TensorDictBase) -> dict[str, torch.Tensor]:
+    """Per trajectory of a ``[B, T]`` rollout: the closest the end effector comes to the object,
+    the most the object moves, and the most it comes closer to its goal than where it started."""
+    first = td["task", "state"][:, 0].double()
+    states = td["next", "task", "state"].double()
+    moved = (task.part(states, task.moved) - task.part(first, task.moved)[:, None]).norm(dim=-1)
+    return {
+        "closest_approach": task.shaping_offset(states).norm(dim=-1).min(-1).values,
+        "object_moved": moved.max(-1).values,
+        "progress": task.distance(first) - task.distance(states).min(-1).values,
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("run_dir", type=Path, help="a run.py run directory (with bank/ and results.json)")
+    parser.add_argument("--conditions", type=int, default=16, help="random positions for the sampling")
+    parser.add_argument("--samples", type=int, default=5, help="samples per position (GPS's default)")
+    parser.add_argument("--std-scale", type=float, default=1.0, help="multiplies the policy's action std")
+    parser.add_argument("--moved", type=float, default=0.005, help="what counts as moving the object")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--world", default=None, help="robot/task instead of the held-out world")
+    args = parser.parse_args()
+
+    missing = [name for name in ("results.json", "bank/manifest.json") if not (args.run_dir / name).exists()]
+    if missing:
+        parser.error(f"{args.run_dir} is not a finished run.py run directory: no {', '.join(missing)}")
+    results = json.loads((args.run_dir / "results.json").read_text())
+    world = args.world or results["holdout"]
+    worlds = [f"{r}/{t}" for r in results["robots"] for t in results["tasks"]]
+    if world not in worlds:
+        parser.error(f"--world {world!r} is not in this run's universe; valid: {', '.join(worlds)}")
+    robot, task = world.split("/")
+    bank = ModuleBank.load(args.run_dir / "bank")
+    pixels = get_universe(results["universe"]).pixels
+    env = evaluation_env(robot, task, horizon=results["horizon"], pixels=pixels)
+    definition = env.world.task
+    if definition.moved == "ee":
+        parser.error(f"{task} moves nothing but the end effector: no object to touch")
+
+    policies = {"composed": (bank, task), "random": (bank.fresh_copy(seed=12345), task)}
+    for other in bank_tasks(bank):
+        if other != task and misfit(bank, robot, other, env) is None:  # as in the zero-shot table
+            policies[f"wrong_task:{other}"] = (bank, other)
+    deterministic = {}
+    for name, (policy_bank, policy_task) in policies.items():
+        td, _ = rollout(policy_bank, robot, policy_task, env)
+        row = {key: [round(v, 4) for v in value.tolist()] for key, value in contact(definition, td).items()}
+        row["distance"] = [round(v, 4) for v in env.final_distance(td).tolist()]
+        deterministic[name] = row
+        print(
+            f"{name:28s} distance {row['distance']}  closest approach {row['closest_approach']}"
+            f"  object moved {row['object_moved']}  progress {row['progress']}"
+        )
+
+    sampler_env = evaluation_env(
+        robot,
+        task,
+        conditions="random",
+        num_conditions=args.conditions,
+        horizon=results["horizon"],
+        pixels=pixels,
+    )
+    acting = list(bank.parts(bank.world(robot, task)).values())[-1]  # owns the action distribution
+    acting.set_std(acting.log_std.exp() * args.std_scale)
+    policy = bank.compose(robot, task)
+    torch.manual_seed(args.seed)
+    moved, closest, progress = [], [], []
+    with evaluating(bank), set_exploration_type(ExplorationType.RANDOM):
+        for _ in range(args.samples):
+            td = sampler_env.rollout(results["horizon"], policy, break_when_any_done=False)
+            found = contact(definition, td)
+            moved.append(found["object_moved"])
+            closest.append(found["closest_approach"])
+            progress.append(found["progress"])
+    moved, closest, progress = torch.cat(moved), torch.cat(closest), torch.cat(progress)
+    sampled = {
+        "trajectories": moved.numel(),
+        "std": [round(s, 4) for s in acting.log_std.exp().tolist()],
+        "moved_the_object": int((moved > args.moved).sum()),
+        "object_moved_max": round(float(moved.max()), 4),
+        "brought_it_closer": int((progress > args.moved).sum()),
+        "progress_max": round(float(progress.max()), 4),
+        "closest_approach_median": round(float(closest.median()), 4),
+        "closest_approach_min": round(float(closest.min()), 4),
+    }
+    print(
+        f"composed, sampled: {sampled['moved_the_object']} of {sampled['trajectories']} trajectories move "
+        f"the {definition.moved} more than {args.moved} (at most {sampled['object_moved_max']}), "
+        f"{sampled['brought_it_closer']} bring it that much closer to its goal (at most "
+        f"{sampled['progress_max']}); closest "
+        f"approach median {sampled['closest_approach_median']}, min {sampled['closest_approach_min']}"
+    )
+    out = {
+        "benchmark": "object_contact",
+        "run_dir": str(args.run_dir),
+        "holdout": results["holdout"],
+        "world": world,
+        "object": definition.moved,
+        "test_positions": deterministic,
+        "sampled": {**sampled, "std_scale": args.std_scale, "moved_threshold": args.moved},
+    }
+    print(json.dumps(out))
+
+
+if __name__ == "__main__":
+    main()
