@@ -7,8 +7,11 @@ comparison, on one of its training worlds with ``--world robot/task``):
 
 1. Each policy (the composed modules, the random network and each wrong task module) acts
    with mean actions from the 4 test positions.  Per position: the task's distance (as in
-   the zero-shot table), the closest the end effector comes to the object, and the most the
-   object moves from where it started.
+   the zero-shot table), the closest the end effector comes to the object, the most the
+   object moves from where it started, and how far from the arm's base the object starts and
+   the end effector ends.  Beside them, how far from the base the objects of the robot's
+   training worlds start (the run's training conditions): a robot module asked to reach
+   beyond them must extrapolate.
 2. The composed policy then samples as fine-tuning's first iteration does, from its own
    Gaussian (``--std-scale`` widens it), ``--samples`` times from each of ``--conditions``
    random positions; it counts the samples that move the object more than ``--moved``, and
@@ -26,6 +29,7 @@ import json
 from pathlib import Path
 
 import torch
+import yaml
 from tensordict import TensorDictBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
@@ -33,11 +37,14 @@ from modnet.bank import ModuleBank
 from modnet.evaluate import bank_tasks, evaluating, evaluation_env, misfit, rollout
 from modnet.specs import TaskDefinition
 from modnet.universes import get_universe
+from modnet.worlds import get_world
 
 
 def contact(task: TaskDefinition, td: TensorDictBase) -> dict[str, torch.Tensor]:
     """Per trajectory of a ``[B, T]`` rollout: the closest the end effector comes to the object,
-    the most the object moves, and the most it comes closer to its goal than where it started."""
+    the most the object moves, the most it comes closer to its goal than where it started, and
+    the distances from the arm's base (the origin) of the object at the start and of the end
+    effector at the end."""
     first = td["task", "state"][:, 0].double()
     states = td["next", "task", "state"].double()
     moved = (task.part(states, task.moved) - task.part(first, task.moved)[:, None]).norm(dim=-1)
@@ -45,7 +52,25 @@ def contact(task: TaskDefinition, td: TensorDictBase) -> dict[str, torch.Tensor]
         "closest_approach": task.shaping_offset(states).norm(dim=-1).min(-1).values,
         "object_moved": moved.max(-1).values,
         "progress": task.distance(first) - task.distance(states).min(-1).values,
+        "object_from_base": task.part(first, task.moved).norm(dim=-1),
+        "end_effector_from_base": task.part(states[:, -1], "ee").norm(dim=-1),
     }
+
+
+def objects_seen(run_dir: Path, results: dict, robot: str) -> dict[str, list[float]]:
+    """How far from the base the objects of ``robot``'s training worlds start: ``{world: [min, max]}``."""
+    gps = yaml.safe_load((run_dir / ".hydra" / "config.yaml").read_text())["gps"]
+    seen = {}
+    for world in results["training_worlds"]:
+        other_robot, task = world.split("/")
+        if other_robot != robot or get_world(robot, task).task.moved == "ee":
+            continue
+        conditions = {"conditions": gps["conditions"], "num_conditions": gps["num_conditions"]}
+        env = evaluation_env(robot, task, **conditions, seed=gps["condition_seed"])
+        definition = env.world.task
+        start = definition.part(env.reset()["task", "state"].double(), definition.moved).norm(dim=-1)
+        seen[world] = [round(float(start.min()), 4), round(float(start.max()), 4)]
+    return seen
 
 
 def main() -> None:
@@ -88,7 +113,12 @@ def main() -> None:
         print(
             f"{name:28s} distance {row['distance']}  closest approach {row['closest_approach']}"
             f"  object moved {row['object_moved']}  progress {row['progress']}"
+            f"  end effector ends {row['end_effector_from_base']} from the base"
         )
+    print(f"the {definition.moved} starts {deterministic['composed']['object_from_base']} from the base")
+    seen = objects_seen(args.run_dir, results, robot)
+    for name, (lo, hi) in seen.items():
+        print(f"  {name} (training): objects start {lo} to {hi} from the base")
 
     sampler_env = evaluation_env(
         robot,
@@ -135,6 +165,7 @@ def main() -> None:
         "world": world,
         "object": definition.moved,
         "test_positions": deterministic,
+        "objects_seen_in_training": seen,
         "sampled": {**sampled, "std_scale": args.std_scale, "moved_threshold": args.moved},
     }
     print(json.dumps(out))

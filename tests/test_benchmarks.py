@@ -87,6 +87,22 @@ def test_object_contact_measures_approach_displacement_and_progress_towards_the_
     torch.testing.assert_close(found["closest_approach"], torch.full((2,), 0.06, dtype=torch.float64))
     torch.testing.assert_close(found["object_moved"], torch.full((2,), 0.1, dtype=torch.float64))
     assert found["progress"][0] == pytest.approx(0.1) and found["progress"][1] < 0
+    torch.testing.assert_close(found["object_from_base"], xy(0.2, 0.5).norm().expand(2))
+    torch.testing.assert_close(found["end_effector_from_base"][0], xy(0.24, 0.5).norm())
+
+
+def test_object_contact_reports_where_the_training_worlds_objects_start(tmp_path):
+    """From the run's own training conditions: three_link/push's blocks, as its condition set has them."""
+    objects_seen = load_benchmark("object_contact").objects_seen
+    (tmp_path / ".hydra").mkdir()
+    gps = {"conditions": "train", "num_conditions": 8, "condition_seed": 3}
+    (tmp_path / ".hydra" / "config.yaml").write_text(json.dumps({"gps": gps}))  # JSON is YAML
+    results = {"training_worlds": ["three_link/push", "three_link/reach", "four_link/push"]}
+    seen = objects_seen(tmp_path, results, "three_link")
+    assert list(seen) == ["three_link/push"]  # not reach (it moves nothing), not another robot
+    blocks = get_world("three_link", "push").conditions("train", 3, 8)[:, 3:5]
+    radius = np.hypot(*blocks.T)
+    np.testing.assert_allclose(seen["three_link/push"], [radius.min(), radius.max()], atol=1e-4)
 
 
 def test_object_contact_on_real_physics_moves_nothing_it_does_not_touch():
