@@ -42,7 +42,7 @@ from modnet.checkpoint import CHECKPOINT, Checkpoint, CheckpointError, load_chec
 from modnet.config import ConfigError, RunConfig, flatten, register_configs, validate  # noqa: E402
 from modnet.envs import WorldEnv  # noqa: E402
 from modnet.evaluate import FineTuning, ZeroShot, evaluation_env, finetune, zero_shot  # noqa: E402
-from modnet.gps.trainer import GPSTrainer  # noqa: E402
+from modnet.gps.trainer import GPSConfig, GPSTrainer  # noqa: E402
 from modnet.loggers import RunLogger  # noqa: E402
 from modnet.pretrain import pretrain_vision  # noqa: E402
 from modnet.universes import Split, Universe, UniverseError, get_universe, world_name  # noqa: E402
@@ -74,6 +74,8 @@ def run_identity(run: RunConfig, universe: Universe, split: Split) -> dict:
     identity = flatten(parts)
     if identity["bank.softmax_temperature"] == 1.0:
         del identity["bank.softmax_temperature"]
+    if identity["gps.dynamics_ridge"] == GPSConfig.dynamics_ridge:
+        del identity["gps.dynamics_ridge"]
     return identity
 
 

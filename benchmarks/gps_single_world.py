@@ -53,6 +53,7 @@ def main() -> None:
     parser.add_argument("--samples", type=int, default=5, help="samples per condition")
     parser.add_argument("--conditions", type=int, default=16, help="training conditions")
     parser.add_argument("--dropout", type=float, default=0.0)
+    parser.add_argument("--dynamics-ridge", type=float, default=GPSConfig.dynamics_ridge)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--trace", action="store_true", help="where the object goes, per condition")
     args = parser.parse_args()
@@ -60,7 +61,11 @@ def main() -> None:
     start = time.perf_counter()
     bank = ModuleBank.build([args.robot], [args.task], seed=args.seed, dropout=args.dropout)
     config = GPSConfig(
-        algo=args.algo, samples_per_condition=args.samples, num_conditions=args.conditions, seed=args.seed
+        algo=args.algo,
+        samples_per_condition=args.samples,
+        num_conditions=args.conditions,
+        seed=args.seed,
+        dynamics_ridge=args.dynamics_ridge,
     )
     trainer = GPSTrainer(bank, [(args.robot, args.task)], config)
     for i in range(args.iterations):

@@ -322,8 +322,8 @@ def test_object_contact_names_the_valid_worlds_and_refuses_a_task_without_an_obj
 
 
 def test_options_at_their_do_nothing_defaults_stay_out_of_the_checkpoint_identity():
-    """A run saved before pretraining and the softmax temperature existed still resumes;
-    turning either on makes a different run."""
+    """A run saved before pretraining, the softmax temperature and the dynamics ridge existed
+    still resumes; changing any of them makes a different run."""
     run_py = load_run_module()
     base = composed_run("universe=color_reach", "seed=3")
     universe, split = validate(base)
@@ -333,6 +333,10 @@ def test_options_at_their_do_nothing_defaults_stay_out_of_the_checkpoint_identit
         split,
     )
     assert not any(k.startswith("pretrain.") or k == "bank.softmax_temperature" for k in plain)
+    assert "gps.dynamics_ridge" not in plain
+    ridged = composed_run("universe=color_reach", "gps.dynamics_ridge=1e-3")
+    ridged = run_py.run_identity(ridged, universe, split)
+    assert ridged["gps.dynamics_ridge"] == 1e-3
     pretrained = run_py.run_identity(base, universe, split)
     assert pretrained["pretrain.images"] == 4000 and pretrained["bank.softmax_temperature"] == 0.05
     assert pretrained["pretrain.seed"] == 3  # follows the run seed

@@ -172,3 +172,26 @@ def test_nan_reaching_the_prior_is_reported_with_context():
     with pytest.raises(NumericalError, match="condition=1") as info:
         DynamicsPriorGMM().update(X, U, world="w", iteration=2)
     assert info.value.world == "w" and info.value.iteration == 2
+
+
+def test_ridge_bounds_the_gain_along_a_direction_the_samples_barely_excite():
+    """Two state parts that move together (like joint and end-effector velocities): the data fix
+    only their sum's effect.  A tiny ridge lets noise set the gain along their difference, which
+    the LQR then trusts as real; ``gps.dynamics_ridge`` shrinks it towards zero."""
+    g = torch.Generator().manual_seed(0)
+    N, T = 5, 30
+    U = torch.randn(1, N, T, 1, dtype=f64, generator=g)
+    X = torch.zeros(1, N, T, 2, dtype=f64)
+    X[:, :, 0] = torch.randn(1, N, 1, dtype=f64, generator=g)  # v = w
+    for t in range(T - 1):  # both parts follow v + w; they differ only by 1e-4 of noise
+        shared = 0.45 * X[:, :, t].sum(-1, keepdim=True) + 0.5 * U[:, :, t]
+        X[:, :, t + 1] = shared + 1e-4 * torch.randn(1, N, 2, dtype=f64, generator=g)
+
+    def largest_mode(ridge: float) -> float:
+        F = fit_dynamics(X, U, ridge=ridge).F[0, :-1, :, :2]  # [T-1, 2, 2]: d x' / d (v, w)
+        return float(torch.linalg.eigvals(F).abs().max())
+
+    assert largest_mode(1e-9) > 1.5  # noise sets the gain along v - w: an unstable mode from nothing
+    assert largest_mode(1e-3) == pytest.approx(0.9, abs=0.01)  # the true system's only mode
+    on_manifold = fit_dynamics(X, U, ridge=1e-3).F[0, :-1, :, :2].sum(-1)  # gain of v + w together
+    torch.testing.assert_close(on_manifold, torch.full_like(on_manifold, 0.9), atol=0.01, rtol=0)

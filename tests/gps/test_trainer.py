@@ -136,6 +136,20 @@ def test_planted_nan_names_world_condition_and_iteration(monkeypatch):
         trainer.step()
 
 
+def test_the_dynamics_ridge_reaches_every_fit(monkeypatch):
+    fit, ridges = trainer_module.fit_dynamics, []
+
+    def recording(*args, **kwargs):
+        ridges.append(kwargs["ridge"])
+        return fit(*args, **kwargs)
+
+    monkeypatch.setattr(trainer_module, "fit_dynamics", recording)
+    trainer_for(worlds=GRID[:2], dynamics_ridge=1e-3, sgd_steps=10, initial_sgd_steps=10).step()
+    assert ridges == [1e-3, 1e-3]  # one fit per world
+    with pytest.raises(ValueError, match="gps.dynamics_ridge must be positive"):
+        small_config(dynamics_ridge=0.0)
+
+
 def test_eta_at_its_cap_raises_with_the_last_kl():
     trainer = trainer_for(worlds=GRID[:1], kl_step=1e-9, max_eta=1e-3)
     message = r"eta reached its cap 0.001 .*last KL .*world=three_link/reach_red"

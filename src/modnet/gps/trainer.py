@@ -89,6 +89,11 @@ class GPSConfig:
     lr: float = 1e-3
     weight_decay: float = 1e-5
     ent_reg: float = 0.0
+    #: ridge on the input block of the dynamics fit's covariance (the GPS code's ``sig_reg``).
+    #: The state holds collinear parts (joint and end-effector velocities) and parts the samples
+    #: may not move (an untouched object); along such directions the fit is unconstrained, and
+    #: a tiny ridge can invent unstable modes that make the C-step fail (RESULTS, section 2).
+    dynamics_ridge: float = 1e-6
     dynamics_prior: DynamicsPriorConfig = field(
         default_factory=lambda: DynamicsPriorConfig(max_clusters=20, min_samples_per_cluster=40)
     )
@@ -103,6 +108,8 @@ class GPSConfig:
         for name in ("samples_per_condition", "sgd_steps", "initial_sgd_steps", "batch_per_world"):
             if getattr(self, name) < 1:
                 raise ValueError(f"gps.{name} must be at least 1, got {getattr(self, name)}")
+        if not self.dynamics_ridge > 0:
+            raise ValueError(f"gps.dynamics_ridge must be positive, got {self.dynamics_ridge}")
         if self.horizon is not None and self.horizon < 1:
             raise ValueError(f"gps.horizon must be at least 1 (or null for the task's), got {self.horizon}")
         if self.conditions not in CONDITION_SETS:
@@ -318,7 +325,12 @@ class GPSTrainer:
                 iteration=self.iteration,
             )
             dynamics = fit_dynamics(
-                samples.X, samples.U, state.dynamics_prior, world=state.name, iteration=self.iteration
+                samples.X,
+                samples.U,
+                state.dynamics_prior,
+                ridge=c.dynamics_ridge,
+                world=state.name,
+                iteration=self.iteration,
             )
         state.previous = state.current
         state.current = Linearised(frozen(state.controller.gains), dynamics, cost)
