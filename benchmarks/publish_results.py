@@ -26,6 +26,7 @@ import yaml
 
 from modnet.aggregate import collect, write_heatmap
 from modnet.files import write_atomically
+from modnet.universes import get_universe
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = ROOT / "docs"
@@ -118,7 +119,7 @@ def zero_shot(run_dir: Path, experiment: str, docs: Path = DOCS) -> dict:
         "code": results.get("code"),  # None: run before results.json recorded it
     }
     paper = PAPER_COUNTERPART.get(results["universe"], results["universe"])
-    if paper in PAPER:
+    if paper in PAPER and paper_holdout(results):
         out["paper"] = {"universe": paper, **PAPER[paper]}
     if results.get("random_conditions"):
         out["extended"] = _extended(results)
@@ -144,8 +145,14 @@ def finetuning(results: dict) -> dict:
         "curves": curves,
         "iterations_to_success": {start: its[0] if its else None for start, its in reached.items()},
         "samples": results.get("finetune_samples"),
-        "paper": PAPER_FINETUNE,
+        "paper": PAPER_FINETUNE if paper_holdout(results) else None,
     }
+
+
+def paper_holdout(results: dict) -> bool:
+    """Whether the run held out the world the paper held out (its universe's default): only
+    then do the paper's figures stand beside it."""
+    return results["holdout"] == get_universe(results["universe"]).holdout
 
 
 def _extended(results: dict) -> dict | None:

@@ -142,6 +142,18 @@ def test_published_fine_tuning_has_curves_iterations_to_success_samples_and_comm
     assert tuning["samples"] == results["finetune_samples"]
     assert published["code"] == results["code"]
     assert (tmp_path / "tiny_finetune_finetune.png").read_bytes() == (run_dir / "finetune.png").read_bytes()
+    assert tuning["paper"].startswith("the composed start without shaping")  # the paper's held-out world
+
+
+def test_the_papers_claims_stand_only_beside_the_world_the_paper_held_out(tiny_run, tmp_path):
+    run_dir, done, _ = tiny_run
+    assert done.returncode == 0, done.stderr[-3000:]
+    other = tmp_path / "other_holdout"
+    shutil.copytree(run_dir, other, ignore=shutil.ignore_patterns("bank", "*.pt", "wandb", "tiny-*"))
+    results = json.loads((other / "results.json").read_text())
+    results["holdout"] = "three_link/reach_red"  # as a run with holdout=three_link/reach_red
+    (other / "results.json").write_text(json.dumps(results))
+    assert publish_zero_shot(other, "tiny_other", tmp_path)["finetune"]["paper"] is None
 
 
 def test_the_saved_bank_knows_what_each_module_was_trained_on(tiny_run):
