@@ -128,6 +128,17 @@ def publish_zero_shot(run_dir: Path, experiment: str, docs: Path) -> dict:
     return json.loads(published.stdout.splitlines()[-1])
 
 
+def publish_edited(run_dir: Path, edit, experiment: str, docs: Path) -> dict:
+    """Publish a copy of a finished run (without its bank and logs) whose results.json ``edit``
+    changed in place, as if the run had produced it."""
+    copy = docs / f"{experiment}_run"
+    shutil.copytree(run_dir, copy, ignore=shutil.ignore_patterns("bank", "*.pt", "wandb", "tiny-*"))
+    results = json.loads((copy / "results.json").read_text())
+    edit(results)
+    (copy / "results.json").write_text(json.dumps(results))
+    return publish_zero_shot(copy, experiment, docs)
+
+
 def test_published_fine_tuning_has_curves_iterations_to_success_samples_and_commit(tiny_run, tmp_path):
     run_dir, done, _ = tiny_run
     assert done.returncode == 0, done.stderr[-3000:]
@@ -148,12 +159,10 @@ def test_published_fine_tuning_has_curves_iterations_to_success_samples_and_comm
 def test_the_papers_claims_stand_only_beside_the_world_the_paper_held_out(tiny_run, tmp_path):
     run_dir, done, _ = tiny_run
     assert done.returncode == 0, done.stderr[-3000:]
-    other = tmp_path / "other_holdout"
-    shutil.copytree(run_dir, other, ignore=shutil.ignore_patterns("bank", "*.pt", "wandb", "tiny-*"))
-    results = json.loads((other / "results.json").read_text())
-    results["holdout"] = "three_link/reach_red"  # as a run with holdout=three_link/reach_red
-    (other / "results.json").write_text(json.dumps(results))
-    assert publish_zero_shot(other, "tiny_other", tmp_path)["finetune"]["paper"] is None
+    published = publish_edited(  # as a run with holdout=three_link/reach_red
+        run_dir, lambda results: results.update(holdout="three_link/reach_red"), "tiny_other", tmp_path
+    )
+    assert published["finetune"]["paper"] is None
 
 
 def test_the_saved_bank_knows_what_each_module_was_trained_on(tiny_run):
@@ -357,13 +366,11 @@ def test_options_at_their_do_nothing_defaults_stay_out_of_the_checkpoint_identit
 def test_published_results_carry_the_vision_pretraining_figures(tiny_run, tmp_path):
     run_dir, done, _ = tiny_run
     assert done.returncode == 0, done.stderr[-3000:]
-    copy = tmp_path / "run"
-    shutil.copytree(run_dir, copy, ignore=shutil.ignore_patterns("bank", "*.pt", "wandb", "tiny-*"))
-    results = json.loads((copy / "results.json").read_text())
     figures = {"images": 4000, "val_error": 0.01234567, "baseline_error": 0.4, "seconds": 9.0}
-    results["pretrain"] = {"reach_red": {**figures, "object_errors": {"red": 0.01234567}}}
-    (copy / "results.json").write_text(json.dumps(results))
-    out = publish_zero_shot(copy, "tiny_pretrained", tmp_path)
+    pretrained = {"reach_red": {**figures, "object_errors": {"red": 0.01234567}}}
+    out = publish_edited(
+        run_dir, lambda results: results.update(pretrain=pretrained), "tiny_pretrained", tmp_path
+    )
     assert out["pretrain"] == {
         "reach_red": {
             "images": 4000,
