@@ -53,6 +53,10 @@ PRETRAIN_REPORT = "pretrain.json"  # the vision pretraining's figures, kept for 
 register_configs()
 
 
+#: Options added after some checkpoints were written, with the value that changes nothing.
+NEWER_OPTIONS = {"bank.softmax_temperature": 1.0, "gps.dynamics_ridge": GPSConfig.dynamics_ridge}
+
+
 def run_identity(run: RunConfig, universe: Universe, split: Split) -> dict:
     """What a checkpoint must match to be resumed: everything that shapes training but its length.
 
@@ -72,10 +76,9 @@ def run_identity(run: RunConfig, universe: Universe, split: Split) -> dict:
     if run.pretrain.images:
         parts["pretrain"] = dataclasses.asdict(run.pretrain_config())
     identity = flatten(parts)
-    if identity["bank.softmax_temperature"] == 1.0:
-        del identity["bank.softmax_temperature"]
-    if identity["gps.dynamics_ridge"] == GPSConfig.dynamics_ridge:
-        del identity["gps.dynamics_ridge"]
+    for key, default in NEWER_OPTIONS.items():
+        if identity[key] == default:
+            del identity[key]
     return identity
 
 

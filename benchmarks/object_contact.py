@@ -35,6 +35,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from modnet.bank import ModuleBank
 from modnet.evaluate import bank_tasks, evaluating, evaluation_env, misfit, rollout
+from modnet.gps.sampling import WorldSampler
 from modnet.specs import TaskDefinition
 from modnet.universes import get_universe
 from modnet.worlds import get_world
@@ -120,27 +121,21 @@ def main() -> None:
     for name, (lo, hi) in seen.items():
         print(f"  {name} (training): objects start {lo} to {hi} from the base")
 
-    sampler_env = evaluation_env(
+    acting = list(bank.parts(bank.world(robot, task)).values())[-1]  # owns the action distribution
+    acting.set_std(acting.log_std.exp() * args.std_scale)
+    sampler = WorldSampler(  # GPS's own sampler, as fine-tuning's first iteration uses it
         robot,
         task,
         conditions="random",
         num_conditions=args.conditions,
+        samples_per_condition=args.samples,
         horizon=results["horizon"],
         pixels=pixels,
     )
-    acting = list(bank.parts(bank.world(robot, task)).values())[-1]  # owns the action distribution
-    acting.set_std(acting.log_std.exp() * args.std_scale)
-    policy = bank.compose(robot, task)
     torch.manual_seed(args.seed)
-    moved, closest, progress = [], [], []
     with evaluating(bank), set_exploration_type(ExplorationType.RANDOM):
-        for _ in range(args.samples):
-            td = sampler_env.rollout(results["horizon"], policy, break_when_any_done=False)
-            found = contact(definition, td)
-            moved.append(found["object_moved"])
-            closest.append(found["closest_approach"])
-            progress.append(found["progress"])
-    moved, closest, progress = torch.cat(moved), torch.cat(closest), torch.cat(progress)
+        found = contact(definition, sampler.rollout(bank.compose(robot, task)))
+    moved, closest, progress = found["object_moved"], found["closest_approach"], found["progress"]
     sampled = {
         "trajectories": moved.numel(),
         "std": [round(s, 4) for s in acting.log_std.exp().tolist()],

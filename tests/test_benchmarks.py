@@ -11,6 +11,8 @@ import pytest
 import torch
 from tensordict import TensorDict
 
+from modnet.bank import ModuleBank
+from modnet.evaluate import evaluation_env, rollout
 from modnet.worlds import get_world
 
 BENCHMARKS = Path(__file__).resolve().parent.parent / "benchmarks"
@@ -108,9 +110,6 @@ def test_object_contact_reports_where_the_training_worlds_objects_start(tmp_path
 def test_object_contact_on_real_physics_moves_nothing_it_does_not_touch():
     """An untrained network in three_link/push: wherever the tip stays out of reach of the block
     (half-width 0.05 plus the tip's 0.02), the block does not move."""
-    from modnet.bank import ModuleBank
-    from modnet.evaluate import evaluation_env, rollout
-
     contact = load_benchmark("object_contact").contact
     bank = ModuleBank.build(["three_link"], ["push"], seed=0)
     env = evaluation_env("three_link", "push", horizon=30)
