@@ -176,7 +176,8 @@ def compare_finetuning(
     run: RunConfig, universe: Universe, split: Split, run_dir: Path, wrong_task: str | None, log: RunLogger
 ) -> FineTuning:
     """GPS on the held-out world from the composed modules, the wrong task module and from scratch
-    (with and without shaping): the network's mean test distance per iteration, plotted and logged."""
+    (with and without shaping): the network's mean test distance per iteration, plotted and logged,
+    and the mean distance of each iteration's samples, logged."""
     tuning = finetune(
         run_dir / "bank",
         *split.holdout,
@@ -186,7 +187,9 @@ def compare_finetuning(
         wrong_task=wrong_task,
         starts=run.eval.finetune_starts,
         pixels=universe.pixels,
-        progress=lambda s, i, d: print(f"fine-tuning from {s}, iteration {i}: test distance {d:.3f}"),
+        progress=lambda s, i, d, sampled: print(
+            f"fine-tuning from {s}, iteration {i}: test distance {d:.3f} (its samples {sampled:.3f})"
+        ),
     )
     title = f"fine-tuning {world_name(split.holdout)}"
     success = get_world(*split.holdout).task.success_distance
@@ -194,6 +197,8 @@ def compare_finetuning(
     for name, curve in tuning.curves.items():
         for i, distance in enumerate(curve):
             log.scalars({f"finetune/{name}/distance": distance}, step=i)
+        for i, distance in enumerate(tuning.sampled[name], start=1):
+            log.scalars({f"finetune/{name}/sampled_distance": distance}, step=i)
     return tuning
 
 
@@ -258,6 +263,7 @@ def main(cfg: DictConfig) -> None:
             wrong_task = result.wrong_task[0] if result.wrong_task else None
             tuning = compare_finetuning(run, universe, split, run_dir, wrong_task, log)
             results["finetune"] = tuning.curves
+            results["finetune_sampled"] = tuning.sampled
             results["finetune_samples"] = tuning.samples
             figures.append("finetune")
             seconds["finetune"] = time.perf_counter() - start

@@ -136,7 +136,9 @@ def zero_shot(run_dir: Path, experiment: str, docs: Path = DOCS) -> dict:
 
 
 def finetuning(results: dict) -> dict:
-    """Fine-tuning curves (iteration -> mean test distance; 0: before) and iterations to success."""
+    """Fine-tuning curves (iteration -> mean test distance; 0: before), iterations to success and,
+    where the run recorded them, the mean distance of each iteration's samples (entry i:
+    iteration i + 1)."""
     success = results["success_distance"]
     curves = {start: [_round(d) for d in curve] for start, curve in results["finetune"].items()}
     # the first iteration whose mean test distance is below the success distance; None: never
@@ -144,6 +146,10 @@ def finetuning(results: dict) -> dict:
     return {
         "curves": curves,
         "iterations_to_success": {start: its[0] if its else None for start, its in reached.items()},
+        "sampled": {
+            start: [_round(d) for d in curve] for start, curve in results.get("finetune_sampled", {}).items()
+        }
+        or None,
         "samples": results.get("finetune_samples"),
         "paper": PAPER_FINETUNE if paper_holdout(results) else None,
     }

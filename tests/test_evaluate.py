@@ -148,6 +148,8 @@ def test_finetune_gives_one_curve_per_start_from_before_training(bank, env, tmp_
         for s in tuning.samples.values()
     )
     assert all(len(c) == 2 and np.isfinite(c).all() for c in curves.values())
+    assert list(tuning.sampled) == list(curves)
+    assert all(len(c) == 1 and np.isfinite(c).all() and min(c) >= 0 for c in tuning.sampled.values())
     assert curves["composed"][0] == pytest.approx(score(bank, *HELD_OUT, env).mean)  # entry 0: the saved bank
     assert "wrong_task" not in finetune(
         tmp_path / "bank", *HELD_OUT, env, config, iterations=0, wrong_task=None

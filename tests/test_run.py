@@ -99,6 +99,8 @@ def test_tiny_pipeline_end_to_end_in_under_two_minutes(tiny_run):
     assert set(results["finetune"]) == {"composed", "wrong_task", "scratch_shaping", "scratch_no_shaping"}
     assert all(len(curve) == 2 for curve in results["finetune"].values())  # before + 1 iteration
     assert set(results["finetune_samples"]) == set(results["finetune"])
+    # each iteration's samples: one mean distance per iteration, no entry for "before"
+    assert {s: len(c) for s, c in results["finetune_sampled"].items()} == {s: 1 for s in results["finetune"]}
     assert results["code"] == code_version()  # the commit that ran; None/None for an installed copy
     for name in [
         "learning_curves.png",
@@ -113,7 +115,9 @@ def test_tiny_pipeline_end_to_end_in_under_two_minutes(tiny_run):
     ]:
         assert (run_dir / name).stat().st_size > 0, name
     assert "composed" in done.stdout and "Zero-shot four_link/reach_black" in done.stdout
-    assert list((run_dir / "tiny-four_link-reach_black" / "scalars" / "train").rglob("distance.csv"))
+    scalars = run_dir / "tiny-four_link-reach_black" / "scalars"
+    assert list((scalars / "train").rglob("distance.csv"))
+    assert (scalars / "finetune" / "composed" / "sampled_distance.csv").stat().st_size > 0
 
 
 def publish_zero_shot(run_dir: Path, experiment: str, docs: Path) -> dict:
@@ -151,6 +155,8 @@ def test_published_fine_tuning_has_curves_iterations_to_success_samples_and_comm
         below = [i for i, d in enumerate(curve) if d < results["success_distance"]]
         assert reached == (below[0] if below else None)
     assert tuning["samples"] == results["finetune_samples"]
+    sampled = results["finetune_sampled"]
+    assert tuning["sampled"] == {s: pytest.approx(c, abs=1e-4) for s, c in sampled.items()}
     assert published["code"] == results["code"]
     assert (tmp_path / "tiny_finetune_finetune.png").read_bytes() == (run_dir / "finetune.png").read_bytes()
     assert tuning["paper"].startswith("the composed start without shaping")  # the paper's held-out world

@@ -277,10 +277,15 @@ def _start_bank(bank_dir: Path, start: str, robot: str, task: str, wrong_task: s
 
 @dataclass
 class FineTuning:
-    """What :func:`finetune` measured: per start, the mean test distance after 0, 1, ... GPS
-    iterations (entry 0: before fine-tuning) and the environment samples it drew."""
+    """What :func:`finetune` measured, per start: the network's mean test distance after 0, 1,
+    ... GPS iterations (``curves``; entry 0: before fine-tuning), the mean distance of the
+    trajectories each iteration sampled (``sampled``; entry i: iteration i + 1's samples, drawn
+    from the local controllers, or from the network at a transferred start's first iteration)
+    and the environment samples it drew.  ``sampled`` falling while ``curves`` stays flat means
+    the controllers learn what the network does not take up."""
 
     curves: dict[str, list[float]]
+    sampled: dict[str, list[float]]
     samples: dict[str, dict[str, int]]
 
 
@@ -312,7 +317,7 @@ def finetune(
     wrong_task: str | None,
     starts: Sequence[str] = FINETUNE_STARTS,
     pixels: bool = False,
-    progress: Callable[[str, int, float], None] | None = None,
+    progress: Callable[[str, int, float, float], None] | None = None,
 ) -> FineTuning:
     """GPS on the held-out world alone from each start; the test distance after every iteration.
 
@@ -320,23 +325,26 @@ def finetune(
     the held-out task's place), ``scratch_shaping`` and ``scratch_no_shaping`` (a freshly
     initialised bank); see :func:`start_config` for each one's cost and first samples.  All
     use ``config``'s seeds.  Returns the :class:`FineTuning` curves ``{start: [mean test
-    distance after 0, 1, ..., iterations iterations]}`` and each start's samples;
-    ``wrong_task`` is left out when there is no wrong task module (None).
-    ``progress(start, iteration, distance)`` is called after each iteration.
+    distance after 0, 1, ..., iterations iterations]}``, the mean distance of each iteration's
+    samples and each start's sample counts; ``wrong_task`` is left out when there is no wrong
+    task module (None).  ``progress(start, iteration, test_distance, sampled_distance)`` is
+    called after each iteration.
     """
     bank_dir = Path(bank_dir)
-    result = FineTuning(curves={}, samples={})
+    result = FineTuning(curves={}, sampled={}, samples={})
     for start in starts:
         if start == "wrong_task" and wrong_task is None:
             continue
         bank = _start_bank(bank_dir, start, robot, task, wrong_task, config.seed)
         trainer = GPSTrainer(bank, [(robot, task)], start_config(config, start), pixels=pixels)
-        curve = [score(bank, robot, task, env).mean]
+        curve, sampled = [score(bank, robot, task, env).mean], []
         for iteration in range(iterations):
-            trainer.step()
+            (diagnostics,) = trainer.step().values()  # the held-out world is the only one
+            sampled.append(float(diagnostics["distance"]))
             curve.append(score(bank, robot, task, env).mean)
             if progress is not None:
-                progress(start, iteration + 1, curve[-1])
+                progress(start, iteration + 1, curve[-1], sampled[-1])
         result.curves[start] = curve
+        result.sampled[start] = sampled
         result.samples[start] = trainer.samples
     return result
