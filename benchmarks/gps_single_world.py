@@ -52,7 +52,9 @@ def main() -> None:
     parser.add_argument("--iterations", type=int, default=20)
     parser.add_argument("--samples", type=int, default=5, help="samples per condition")
     parser.add_argument("--conditions", type=int, default=16, help="training conditions")
-    parser.add_argument("--dropout", type=float, default=0.0)
+    parser.add_argument(
+        "--dropout", type=float, default=0.0, help="the modules' dropout (the universes use BankConfig's 0.2)"
+    )
     parser.add_argument("--dynamics-ridge", type=float, default=GPSConfig.dynamics_ridge)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--trace", action="store_true", help="where the object goes, per condition")
