@@ -53,7 +53,10 @@ def main() -> None:
     parser.add_argument("--samples", type=int, default=5, help="samples per condition")
     parser.add_argument("--conditions", type=int, default=16, help="training conditions")
     parser.add_argument(
-        "--dropout", type=float, default=0.0, help="the modules' dropout (the universes use BankConfig's 0.2)"
+        "--dropout",
+        type=float,
+        default=0.0,
+        help="the modules' dropout (none; universe manipulation uses 0.2, the colour and visual ones 0.1)",
     )
     parser.add_argument("--dynamics-ridge", type=float, default=GPSConfig.dynamics_ridge)
     parser.add_argument("--seed", type=int, default=0)
