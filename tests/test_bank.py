@@ -105,6 +105,10 @@ def test_config_options_and_their_errors():
     bank = ModuleBank.build(["three_link"], ["reach"], config=BankConfig(robot_hidden=(32,)), dropout=0.0)
     assert bank.config.robot_hidden == (32,) and bank.config.dropout == 0.0
     assert linear_shapes(bank.get("robot", "three_link")) == [(18, 32), (32, 3)]
+    # lists, as JSON or a notebook gives them, are the tuples they stand for
+    listed = ModuleBank.build(["three_link"], ["reach"], robot_hidden=[32], conv_strides=[2, 1])
+    assert listed.config == BankConfig(robot_hidden=(32,))
+    assert hash(listed.config) == hash(BankConfig(robot_hidden=(32,)))
     with pytest.raises(ValueError, match=r"interface_dim must hold positive integers, got \(0,\)"):
         BankConfig(interface_dim=0)
     with pytest.raises(ValueError, match=r"dropout must be a probability in \[0, 1\), got 1.5"):

@@ -140,6 +140,9 @@ class BankConfig:
     init_log_std: float = -1.1512925464970228
 
     def __post_init__(self) -> None:
+        for f in fields(self):  # a list (from JSON, YAML or a notebook) is the tuple it stands for
+            if isinstance(value := getattr(self, f.name), list):
+                object.__setattr__(self, f.name, tuple(value))
         check_positive_ints("interface_dim", (self.interface_dim,))
         # Every other field is checked by the ModuleArch it ends up in: build one of each.
         self.task_arch(1, pixels=True)
@@ -207,7 +210,7 @@ class BankConfig:
         names = {f.name for f in fields(cls)}
         if not isinstance(data, Mapping) or set(data) - names:
             raise ValueError(f"a bank config is a JSON object with fields among {sorted(names)}")
-        return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in data.items()})
+        return cls(**data)
 
 
 def _task_observation(task_state_dim: int, pixels: bool) -> tuple[NestedKey, int]:
