@@ -58,9 +58,9 @@ def contact(task: TaskDefinition, td: TensorDictBase) -> dict[str, torch.Tensor]
     }
 
 
-def objects_seen(run_dir: Path, results: dict, robot: str) -> dict[str, list[float]]:
-    """How far from the base the objects of ``robot``'s training worlds start: ``{world: [min, max]}``."""
-    gps = yaml.safe_load((run_dir / ".hydra" / "config.yaml").read_text())["gps"]
+def objects_seen(gps: dict, results: dict, robot: str) -> dict[str, list[float]]:
+    """How far from the base the objects of ``robot``'s training worlds start, in the training
+    conditions of the run's ``gps`` options: ``{world: [min, max]}``."""
     seen = {}
     for world in results["training_worlds"]:
         other_robot, task = world.split("/")
@@ -85,7 +85,8 @@ def main() -> None:
     parser.add_argument("--world", default=None, help="robot/task instead of the held-out world")
     args = parser.parse_args()
 
-    missing = [name for name in ("results.json", "bank/manifest.json") if not (args.run_dir / name).exists()]
+    needed = ("results.json", "bank/manifest.json", ".hydra/config.yaml")
+    missing = [name for name in needed if not (args.run_dir / name).exists()]
     if missing:
         parser.error(f"{args.run_dir} is not a finished run.py run directory: no {', '.join(missing)}")
     results = json.loads((args.run_dir / "results.json").read_text())
@@ -101,7 +102,9 @@ def main() -> None:
     if definition.moved == "ee":
         parser.error(f"{task} moves nothing but the end effector: no object to touch")
 
-    policies = {"composed": (bank, task), "random": (bank.fresh_copy(seed=12345), task)}
+    run_config = yaml.safe_load((args.run_dir / ".hydra" / "config.yaml").read_text())
+    random_network = bank.fresh_copy(seed=run_config["eval"]["baseline_seed"])  # the zero-shot table's
+    policies = {"composed": (bank, task), "random": (random_network, task)}
     for other in bank_tasks(bank):
         if other != task and misfit(bank, robot, other, env) is None:  # as in the zero-shot table
             policies[f"wrong_task:{other}"] = (bank, other)
@@ -117,7 +120,7 @@ def main() -> None:
             f"  end effector ends {row['end_effector_from_base']} from the base"
         )
     print(f"the {definition.moved} starts {deterministic['composed']['object_from_base']} from the base")
-    seen = objects_seen(args.run_dir, results, robot)
+    seen = objects_seen(run_config["gps"], results, robot)
     for name, (lo, hi) in seen.items():
         print(f"  {name} (training): objects start {lo} to {hi} from the base")
 

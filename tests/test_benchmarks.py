@@ -93,14 +93,12 @@ def test_object_contact_measures_approach_displacement_and_progress_towards_the_
     torch.testing.assert_close(found["end_effector_from_base"][0], xy(0.24, 0.5).norm())
 
 
-def test_object_contact_reports_where_the_training_worlds_objects_start(tmp_path):
+def test_object_contact_reports_where_the_training_worlds_objects_start():
     """From the run's own training conditions: three_link/push's blocks, as its condition set has them."""
     objects_seen = load_benchmark("object_contact").objects_seen
-    (tmp_path / ".hydra").mkdir()
-    gps = {"conditions": "train", "num_conditions": 8, "condition_seed": 3}
-    (tmp_path / ".hydra" / "config.yaml").write_text(json.dumps({"gps": gps}))  # JSON is YAML
+    gps = {"conditions": "train", "num_conditions": 8, "condition_seed": 3}  # as .hydra/config.yaml has it
     results = {"training_worlds": ["three_link/push", "three_link/reach", "four_link/push"]}
-    seen = objects_seen(tmp_path, results, "three_link")
+    seen = objects_seen(gps, results, "three_link")
     assert list(seen) == ["three_link/push"]  # not reach (it moves nothing), not another robot
     blocks = get_world("three_link", "push").conditions("train", 3, 8)[:, 3:5]
     radius = np.hypot(*blocks.T)
