@@ -136,6 +136,13 @@ def test_reachable_finds_a_torque_sequence_that_reaches_a_test_target_and_replay
         world, data, params, reachable.interpolate(found.knots, world.task.horizon)
     )
     assert replay == pytest.approx(found.best, abs=1e-12)
+    # the same torques through modnet's TorchRL env (test condition 0 is its first copy)
+    env = evaluation_env("three_link", "reach")
+    table = torch.as_tensor(reachable.interpolate(found.knots, world.task.horizon), dtype=torch.float32)
+    td = env.rollout(
+        world.task.horizon, lambda td: td.set("action", table[td["step_count"][:, 0]].expand(4, -1))
+    )
+    assert env.final_distance(td)[0].item() == pytest.approx(found.best, abs=1e-4)
     with pytest.raises(ValueError, match="elites"):
         reachable.cem(world, params, population=4, elites=5)
 
