@@ -128,7 +128,6 @@ def test_reachable_finds_a_torque_sequence_that_reaches_a_test_target_and_replay
     world = get_world("three_link", "reach")
     params = world.conditions("test", 0)[0]
     found = reachable.cem(world, params, population=40, elites=8, iterations=8)
-    assert found.rollouts == 320
     assert found.zero_torque > 1.5  # the untouched arm stays far from the target
     assert found.best < world.task.success_distance
     data = mujoco.MjData(world.model)

@@ -26,6 +26,7 @@ from modnet.worlds import CONDITION_SETS, World, get_world
 
 _OPEN_RENDERERS: weakref.WeakSet = weakref.WeakSet()
 CAMERA = "top"  # the camera every scene defines and a vision policy sees through
+FINAL_STEPS = 5  # the paper's metric: the task's distance averaged over the last 5 steps
 
 
 def _close_open_renderers() -> None:
@@ -245,7 +246,7 @@ class WorldEnv(EnvBase):
         return None
 
     # --- for evaluation and pictures --------------------------------------------------------------
-    def final_distance(self, rollout: TensorDictBase, last: int = 5) -> torch.Tensor:
+    def final_distance(self, rollout: TensorDictBase, last: int = FINAL_STEPS) -> torch.Tensor:
         """The paper's metric: the task's distance averaged over the last ``last`` steps, ``[B]``.
 
         ``rollout`` is a ``[B, T]`` tensordict from :meth:`rollout` (its ``"next"`` states).
