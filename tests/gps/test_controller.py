@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import pytest
+import scipy.ndimage
 import torch
 from tensordict import TensorDict
 from torchrl.data import Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase, StepCounter, TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from modnet.gps.controller import LinearGaussianController, LinearGaussianGains
+from modnet.gps.controller import LinearGaussianController, LinearGaussianGains, smoothed_noise
 from modnet.gps.cost import QuadraticCost
 from modnet.gps.dynamics import LinearGaussianDynamics
 from modnet.gps.errors import NumericalError
@@ -197,3 +198,48 @@ def test_policy_of_a_torchrl_rollout():
     torch.manual_seed(0)
     sampled = env.rollout(steps, policy=LinearGaussianController(gains, [ROBOT, TASK]))
     assert not torch.allclose(sampled["action"], traj["action"])
+
+
+@pytest.mark.parametrize("horizon", [30, 3])  # 3: the kernel (radius 8) is wider than the episode
+def test_smoothed_noise_is_gpss_filtered_and_renormalised_noise(horizon):
+    white = torch.randn(4, horizon, 2, dtype=f64, generator=torch.Generator().manual_seed(0))
+    expected = scipy.ndimage.gaussian_filter1d(white.numpy(), 2.0, axis=1, mode="reflect")
+    expected /= expected.std(1, keepdims=True)
+    smooth = smoothed_noise((4, horizon, 2), 2.0, generator=torch.Generator().manual_seed(0))
+    torch.testing.assert_close(smooth, torch.from_numpy(expected))
+    unsmoothed = smoothed_noise((4, horizon, 2), 0.0, generator=torch.Generator().manual_seed(0))
+    torch.testing.assert_close(unsmoothed, white)
+
+
+def lag_one_correlation(actions: torch.Tensor) -> float:
+    """Mean over entries and dims of the correlation of consecutive actions ``[B, T, dU]``."""
+    a = actions - actions.mean(1, keepdim=True)
+    return float(((a[:, 1:] * a[:, :-1]).sum(1) / a.pow(2).sum(1)).mean())
+
+
+@pytest.mark.parametrize("sigma", [0.0, 2.0])
+def test_rollout_noise_is_smoothed_per_episode(sigma):
+    horizon = 40
+    gains = LinearGaussianGains.from_covariance(  # zero mean: the actions are the noise
+        torch.zeros(M, horizon, dU, dX, dtype=f64),
+        torch.zeros(M, horizon, dU, dtype=f64),
+        4.0 * torch.eye(dU, dtype=f64).expand(M, horizon, dU, dU),
+    )
+    ctrl = LinearGaussianController(
+        gains, [ROBOT, TASK], noise_smoothing=sigma, generator=torch.Generator().manual_seed(0),
+        action_dtype=f64,
+    )
+    env = TransformedEnv(TinyEnv(), StepCounter())
+    first, second = (env.rollout(horizon, policy=ctrl)["action"] for _ in range(2))
+    if sigma:
+        assert lag_one_correlation(first) > 0.8
+        # each episode's noise has exactly the controllers' variance over its steps
+        torch.testing.assert_close(first.var(1, unbiased=False), torch.full((M, dU), 4.0, dtype=f64))
+    else:
+        assert abs(lag_one_correlation(first)) < 0.2
+    assert not torch.allclose(first, second)  # drawn afresh for each episode
+
+
+def test_negative_noise_smoothing_is_refused():
+    with pytest.raises(ValueError, match="noise_smoothing"):
+        LinearGaussianController(random_gains(), [ROBOT, TASK], noise_smoothing=-1.0)

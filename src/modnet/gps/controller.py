@@ -38,7 +38,48 @@ if TYPE_CHECKING:
     from modnet.gps.cost import QuadraticCost
     from modnet.gps.dynamics import LinearGaussianDynamics
 
-__all__ = ["LinearGaussianController", "LinearGaussianGains"]
+__all__ = ["LinearGaussianController", "LinearGaussianGains", "smoothed_noise"]
+
+
+def smoothed_noise(
+    shape: Sequence[int],
+    sigma: float,
+    *,
+    generator: torch.Generator | None = None,
+    dtype: torch.dtype = torch.float64,
+) -> torch.Tensor:
+    """Standard normal noise ``[B, T, dU]``, Gaussian-filtered along time, then renormalised.
+
+    The GPS code's exploration noise (``generate_noise`` with ``smooth_noise``): each
+    episode's white noise is filtered along its T steps with a Gaussian kernel of standard
+    deviation ``sigma`` steps (truncated at 4 sigma, edges mirrored as in
+    ``scipy.ndimage.gaussian_filter``), then divided by its own standard deviation over time,
+    so every action dimension keeps unit variance while neighbouring steps push the same way.
+    ``sigma = 0`` gives white noise.
+
+    Examples:
+        >>> g = torch.Generator().manual_seed(0)
+        >>> noise = smoothed_noise((2, 100, 3), 2.0, generator=g)
+        >>> noise.shape, bool(noise.var(1, unbiased=False).allclose(torch.tensor(1.0, dtype=noise.dtype)))
+        (torch.Size([2, 100, 3]), True)
+        >>> lag1 = (noise[:, 1:] * noise[:, :-1]).mean()
+        >>> bool(lag1 > 0.8)  # white noise: about 0
+        True
+    """
+    B, T, dU = shape
+    noise = torch.randn(B, T, dU, generator=generator, dtype=dtype)
+    if sigma <= 0 or T < 2:
+        return noise
+    radius = int(4.0 * sigma + 0.5)
+    offsets = torch.arange(-radius, radius + 1, dtype=dtype)
+    kernel = torch.exp(-0.5 * (offsets / sigma) ** 2)
+    kernel = kernel / kernel.sum()
+    # "reflect" edges (d c b a | a b c d | d c b a): index i -> its mirror, period 2T
+    index = torch.arange(-radius, T + radius) % (2 * T)
+    index = torch.where(index >= T, 2 * T - 1 - index, index)
+    windows = noise[:, index].unfold(1, 2 * radius + 1, 1)  # [B, T, dU, 2r+1]
+    filtered = windows @ kernel
+    return filtered / filtered.std(1, unbiased=False, keepdim=True).clamp_min(1e-12)
 
 
 @dataclass
@@ -110,6 +151,7 @@ class _LinearGaussianPolicy(nn.Module):
         deterministic: bool | None,
         generator: torch.Generator | None,
         action_dtype: torch.dtype | None,
+        noise_smoothing: float = 0.0,
     ) -> None:
         super().__init__()
         self.register_buffer("K", gains.K.clone())
@@ -118,6 +160,8 @@ class _LinearGaussianPolicy(nn.Module):
         self.deterministic = deterministic
         self.generator = generator
         self.action_dtype = action_dtype
+        self.noise_smoothing = noise_smoothing
+        self.episode_noise: torch.Tensor | None = None  # [B, T, dU], drawn at each episode's t = 0
 
     def use_mean(self) -> bool:
         """Explicit flag first; otherwise act on the mean unless the interaction type is RANDOM."""
@@ -135,12 +179,28 @@ class _LinearGaussianPolicy(nn.Module):
         t = step_count.reshape(-1).long().clamp(0, self.K.shape[1] - 1)
         action = (self.K[cond, t] @ x.unsqueeze(-1)).squeeze(-1) + self.k[cond, t]
         if not self.use_mean():
-            noise = torch.randn(
-                action.shape, generator=self.generator, dtype=action.dtype, device=action.device
-            )
+            noise = self.noise(t, action)
             action = action + (self.chol[cond, t] @ noise.unsqueeze(-1)).squeeze(-1)
         out_dtype = self.action_dtype or state_parts[0].dtype
         return action.reshape(*batch_shape, -1).to(out_dtype)
+
+    def noise(self, t: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """Unit noise ``[B, dU]`` for the batch entries at steps ``t``: white, or read from each
+        episode's smoothed sequence, drawn when the entry is at its first step."""
+        if self.noise_smoothing <= 0:
+            return torch.randn(
+                action.shape, generator=self.generator, dtype=action.dtype, device=action.device
+            )
+        B, (T, dU) = action.shape[0], self.k.shape[1:]
+        if self.episode_noise is None or self.episode_noise.shape[0] != B:
+            self.episode_noise = smoothed_noise((B, T, dU), self.noise_smoothing, generator=self.generator)
+        else:
+            fresh = (t == 0).nonzero().squeeze(-1)
+            if fresh.numel():
+                self.episode_noise[fresh] = smoothed_noise(
+                    (fresh.numel(), T, dU), self.noise_smoothing, generator=self.generator
+                )
+        return self.episode_noise[torch.arange(B), t].to(action)
 
 
 class LinearGaussianController(TensorDictModule):
@@ -155,6 +215,10 @@ class LinearGaussianController(TensorDictModule):
     ``deterministic`` is None and the exploration type is set to anything but RANDOM
     (e.g. ``set_exploration_type(ExplorationType.DETERMINISTIC)``); unset means sample.
     The action has ``action_dtype`` (default: the dtype of the first state part).
+    With ``noise_smoothing > 0`` the noise is the GPS code's smoothed exploration noise
+    (:func:`smoothed_noise`): each batch entry draws a whole episode's sequence when its
+    ``step_key`` is 0 and reads step t from it, so the entries must keep their batch
+    positions through an episode, as in a batched rollout.
 
     Examples:
         >>> import torch
@@ -181,8 +245,11 @@ class LinearGaussianController(TensorDictModule):
         deterministic: bool | None = None,
         generator: torch.Generator | None = None,
         action_dtype: torch.dtype | None = None,
+        noise_smoothing: float = 0.0,
     ) -> None:
-        policy = _LinearGaussianPolicy(gains, deterministic, generator, action_dtype)
+        if noise_smoothing < 0:
+            raise ValueError(f"noise_smoothing must be non-negative, got {noise_smoothing}")
+        policy = _LinearGaussianPolicy(gains, deterministic, generator, action_dtype, noise_smoothing)
         super().__init__(
             policy, in_keys=[*state_keys, condition_key, step_key], out_keys=[action_key]
         )
