@@ -54,7 +54,12 @@ register_configs()
 
 
 #: Options added after some checkpoints were written, with the value that changes nothing.
-NEWER_OPTIONS = {"bank.softmax_temperature": 1.0, "gps.dynamics_ridge": GPSConfig.dynamics_ridge}
+NEWER_OPTIONS = {
+    "bank.softmax_temperature": 1.0,
+    "gps.dynamics_ridge": GPSConfig.dynamics_ridge,
+    "gps.noise_smoothing": 0.0,
+    "gps.dynamics_prior_per_condition": False,
+}
 
 
 def run_identity(run: RunConfig, universe: Universe, split: Split) -> dict:

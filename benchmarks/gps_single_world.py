@@ -2,6 +2,7 @@
 
     python benchmarks/gps_single_world.py --robot three_link --task reach [--algo mdgps --iterations 10]
     python benchmarks/gps_single_world.py --task push --conditions 4 --trace   # where the block goes
+    python benchmarks/gps_single_world.py --noise-smoothing 2 --dynamics-prior-per-condition  # GPS code's
 
 The distance is the task's (end-effector or object to goal) averaged over the last 5 steps
 of a deterministic rollout of the composed policy (not the local controllers) from each
@@ -59,6 +60,17 @@ def main() -> None:
         help="the modules' dropout (none; universe manipulation uses 0.2, the colour and visual ones 0.1)",
     )
     parser.add_argument("--dynamics-ridge", type=float, default=GPSConfig.dynamics_ridge)
+    parser.add_argument(
+        "--noise-smoothing",
+        type=float,
+        default=GPSConfig.noise_smoothing,
+        help="sigma, in steps, of the exploration noise's filter along time (0: white)",
+    )
+    parser.add_argument(
+        "--dynamics-prior-per-condition",
+        action="store_true",
+        help="one dynamics prior per condition (the GPS code's), not one per world",
+    )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--trace", action="store_true", help="where the object goes, per condition")
     args = parser.parse_args()
@@ -71,6 +83,8 @@ def main() -> None:
         num_conditions=args.conditions,
         seed=args.seed,
         dynamics_ridge=args.dynamics_ridge,
+        noise_smoothing=args.noise_smoothing,
+        dynamics_prior_per_condition=args.dynamics_prior_per_condition,
     )
     trainer = GPSTrainer(bank, [(args.robot, args.task)], config)
     for i in range(args.iterations):
@@ -84,6 +98,8 @@ def main() -> None:
             {
                 "world": f"{args.robot}/{args.task}",
                 "algo": args.algo,
+                "noise_smoothing": args.noise_smoothing,
+                "dynamics_prior_per_condition": args.dynamics_prior_per_condition,
                 "final_distance": [round(float(d), 4) for d in distance],
                 "success_distance": task_spec(args.task).success_distance,
                 "iterations": args.iterations,

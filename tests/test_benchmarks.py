@@ -49,9 +49,12 @@ def test_pretrain_benchmark_reports_every_vision_module_and_a_ratio_against_mj_s
 
 
 def test_gps_single_world_traces_where_the_object_goes():
-    """``--trace`` reads the right state slots: at step 0 every block is where its condition put it."""
+    """``--trace`` reads the right state slots: at step 0 every block is where its condition put it.
+    (Run with the GPS code's smoothed noise and per-condition priors, which the JSON echoes.)"""
     options = "--task push --conditions 4 --samples 2 --iterations 1 --trace".split()
+    options += ["--noise-smoothing", "2", "--dynamics-prior-per-condition"]
     figures = last_json("gps_single_world.py", *options, timeout=600)
+    assert figures["noise_smoothing"] == 2.0 and figures["dynamics_prior_per_condition"] is True
     trace = figures["trace"]
     assert trace["steps"] == [0, 20, 40, 60, 99]
     params = get_world("three_link", "push").conditions("train", 0, 4)[:, 3:]  # block (x, y), goal (x, y)

@@ -95,16 +95,21 @@ def test_seeded_runs_are_reproducible():
     assert a == b
 
 
-def test_checkpoint_state_resumes_exactly():
+@pytest.mark.parametrize("per_condition", [False, True])
+def test_checkpoint_state_resumes_exactly(per_condition):
     """Continuing after a save/load round trip gives the same iteration as never stopping."""
-    original = trainer_for(worlds=GRID[:1], algo="badmm")
+    options = dict(worlds=GRID[:1], algo="badmm", dynamics_prior_per_condition=per_condition)
+    original = trainer_for(**options)
     original.step()
     buffer = io.BytesIO()
     torch.save(original.state_dict(), buffer)
     buffer.seek(0)
     expected = original.step()  # the global RNG is shared: continue the original first
     state = torch.load(buffer, weights_only=True)
-    resumed = trainer_for(worlds=GRID[:1], algo="badmm")
+    other = dict(options, dynamics_prior_per_condition=not per_condition)
+    with pytest.raises(ValueError, match="differ in gps.dynamics_prior_per_condition"):
+        trainer_for(**other).load_state_dict(state)
+    resumed = trainer_for(**options)
     resumed.load_state_dict(state)
     assert resumed.iteration == 1 and resumed.history == original.history[:1]
     first = float(state["seconds"])
@@ -115,7 +120,7 @@ def test_checkpoint_state_resumes_exactly():
         trainer_for(worlds=GRID[1:2]).load_state_dict(state)
     # a checkpoint from before the trainer kept its wall time still resumes, from 0 s
     older = {k: v for k, v in state.items() if k != "seconds"}
-    legacy = trainer_for(worlds=GRID[:1], algo="badmm")
+    legacy = trainer_for(**options)
     legacy.load_state_dict(older)
     assert legacy.iteration == 1 and legacy.seconds == 0.0
 
@@ -203,3 +208,45 @@ def test_unknown_algorithm_and_missing_modules():
         GPSTrainer(bank, [("three_link", "reach_red")], GPSConfig(algo="ilqr"))
     with pytest.raises(ValueError, match="no task module 'reach_black'"):
         GPSTrainer(bank, [("three_link", "reach_black")], GPSConfig())
+
+
+@pytest.mark.parametrize("sigma", [0.0, 2.0])
+def test_noise_smoothing_shapes_the_exploration_of_the_samples(sigma):
+    """``gps.noise_smoothing`` reaches the controllers the worlds are sampled with: what the
+    samples' actions add to the controllers' means is white, or correlated over steps."""
+    trainer = trainer_for(worlds=GRID[:1], noise_smoothing=sigma, horizon=40)
+    trainer.step()
+    state = trainer.states["three_link/reach_red"]
+    samples = state.samples  # drawn with the gains ``current`` holds
+    noise = samples.U - state.current.gains.mean_actions(samples.X)  # [M, N, T, dU]
+    noise = noise - noise.mean(2, keepdim=True)
+    lag1 = float(((noise[:, :, 1:] * noise[:, :, :-1]).sum(2) / noise.pow(2).sum(2)).mean())
+    assert (lag1 > 0.8) if sigma else (abs(lag1) < 0.2), lag1
+    with pytest.raises(ValueError, match="gps.noise_smoothing must be non-negative"):
+        GPSConfig(noise_smoothing=-1.0)
+
+
+def test_per_condition_priors_each_buffer_their_own_conditions_trajectories(monkeypatch):
+    """With ``gps.dynamics_prior_per_condition`` each condition's dynamics fit is informed by a
+    prior over that condition's latest trajectories only (the GPS code's arrangement), kept up
+    to the buffer's size across iterations; the shared prior mixes all conditions."""
+    fit, priors = trainer_module.fit_dynamics, []
+
+    def recording(X, U, prior, **kwargs):
+        priors.append(prior)
+        return fit(X, U, prior, **kwargs)
+
+    monkeypatch.setattr(trainer_module, "fit_dynamics", recording)
+    trainer = trainer_for(worlds=GRID[:1], dynamics_prior_per_condition=True)  # M=4, N=3
+    state = trainer.states["three_link/reach_red"]
+    trainer.step()
+    X1 = state.samples.X
+    trainer.step()
+    X2 = state.samples.X
+    assert len(priors) == 2 and all(isinstance(p, list) and len(p) == 4 for p in priors)
+    for m, prior in enumerate(state.dynamics_prior):
+        torch.testing.assert_close(prior.X, torch.cat([X1[m], X2[m]]))  # 6 of at most 20
+    shared = trainer_for(worlds=GRID[:1])
+    shared.step()
+    shared_prior = shared.states["three_link/reach_red"].dynamics_prior
+    assert shared_prior.X.shape[0] == 12  # every condition's 3 samples in one buffer

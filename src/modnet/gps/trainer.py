@@ -79,6 +79,10 @@ class GPSConfig:
     init_variance: float = 1.0  # of the first controllers: their spread also sets the first input scaling
     init_kp: float = 0.5
     init_kd: float = 0.3
+    #: exploration noise of the controllers' samples: a Gaussian filter of this many steps (sigma)
+    #: along each episode, renormalised to the controllers' covariance (the GPS code's
+    #: ``smooth_noise``, whose default is 2.0); 0 draws white noise at every step
+    noise_smoothing: float = 0.0
     kl_step: float = 1.0
     min_step_mult: float = 0.5
     max_step_mult: float = 3.0
@@ -97,6 +101,9 @@ class GPSConfig:
     dynamics_prior: DynamicsPriorConfig = field(
         default_factory=lambda: DynamicsPriorConfig(max_clusters=20, min_samples_per_cluster=40)
     )
+    #: one dynamics prior per condition, each buffering that condition's latest trajectories
+    #: (as the GPS code keeps them), instead of one per world over all its conditions
+    dynamics_prior_per_condition: bool = False
     badmm: BADMMConfig = field(default_factory=BADMMConfig)
     #: fine-tuning: sample the first iteration from the bank's composed policies and start the
     #: controllers from their linearisation (instead of fitting the policy to hold-position ones),
@@ -110,6 +117,10 @@ class GPSConfig:
                 raise ValueError(f"gps.{name} must be at least 1, got {getattr(self, name)}")
         if not self.dynamics_ridge > 0:
             raise ValueError(f"gps.dynamics_ridge must be positive, got {self.dynamics_ridge}")
+        if self.noise_smoothing < 0:
+            raise ValueError(
+                f"gps.noise_smoothing must be non-negative (0: white noise), got {self.noise_smoothing}"
+            )
         if self.horizon is not None and self.horizon < 1:
             raise ValueError(f"gps.horizon must be at least 1 (or null for the task's), got {self.horizon}")
         if self.conditions not in CONDITION_SETS:
@@ -147,7 +158,7 @@ class WorldState:
     name: str
     sampler: WorldSampler
     controller: LinearGaussianController
-    dynamics_prior: DynamicsPriorGMM
+    dynamics_prior: DynamicsPriorGMM | list[DynamicsPriorGMM]  # per world, or per condition
     policy_prior: PolicyPriorGMM
     eta: torch.Tensor  # [M]
     step_mult: torch.Tensor  # [M]
@@ -231,6 +242,7 @@ class GPSTrainer:
             kd=c.init_kd,
             variance=c.init_variance,
             action_dtype=torch.float32,
+            noise_smoothing=c.noise_smoothing,
         )
         duals = None
         if c.algo == "badmm":
@@ -241,7 +253,11 @@ class GPSTrainer:
             name=sampler.name,
             sampler=sampler,
             controller=controller,
-            dynamics_prior=DynamicsPriorGMM(prior, generator),
+            dynamics_prior=(
+                [DynamicsPriorGMM(prior, generator) for _ in range(M)]
+                if c.dynamics_prior_per_condition
+                else DynamicsPriorGMM(prior, generator)
+            ),
             policy_prior=PolicyPriorGMM(prior, generator),
             eta=torch.ones(M, dtype=torch.float64),
             step_mult=torch.ones(M, dtype=torch.float64),
@@ -317,13 +333,7 @@ class GPSTrainer:
             with torch.no_grad():
                 sampled = (world.state_cost(samples.X, samples.U, c.shaping) * weights).sum(-1)
         with self._timed("dynamics"):
-            # sample-major order: the prior's buffer of the latest trajectories spans every condition
-            state.dynamics_prior.update(
-                samples.X.transpose(0, 1),
-                samples.U.transpose(0, 1),
-                world=state.name,
-                iteration=self.iteration,
-            )
+            self._update_dynamics_prior(state, samples)
             dynamics = fit_dynamics(
                 samples.X,
                 samples.U,
@@ -339,6 +349,14 @@ class GPSTrainer:
             "sampled_cost": float(sampled.mean()),
             "distance": float(samples.distance.mean()),
         }
+
+    def _update_dynamics_prior(self, state: WorldState, samples: Samples) -> None:
+        where = dict(world=state.name, iteration=self.iteration)
+        if isinstance(state.dynamics_prior, list):  # condition m's prior buffers condition m's samples
+            for prior, X, U in zip(state.dynamics_prior, samples.X, samples.U, strict=True):
+                prior.update(X, U, **where)
+        else:  # sample-major order: the buffer of the latest trajectories spans every condition
+            state.dynamics_prior.update(samples.X.transpose(0, 1), samples.U.transpose(0, 1), **where)
 
     # --- the policy around the samples ----------------------------------------------------------
     @torch.no_grad()
@@ -625,7 +643,9 @@ def _linearised_from(d: dict | None) -> Linearised | None:
     )
 
 
-def _prior_dict(prior) -> dict:
+def _prior_dict(prior) -> dict | list[dict]:
+    if isinstance(prior, list):
+        return [_prior_dict(p) for p in prior]
     gmm = prior.gmm
     return {
         "X": prior.X,
@@ -637,7 +657,16 @@ def _prior_dict(prior) -> dict:
     }
 
 
-def _load_prior(prior, d: dict) -> None:
+def _load_prior(prior, d: dict | list[dict]) -> None:
+    if isinstance(prior, list) != isinstance(d, list):
+        raise ValueError(
+            "checkpoint and trainer differ in gps.dynamics_prior_per_condition "
+            f"(checkpoint: {isinstance(d, list)}, trainer: {isinstance(prior, list)})"
+        )
+    if isinstance(prior, list):
+        for p, one in zip(prior, d, strict=True):
+            _load_prior(p, one)
+        return
     prior.X, prior.U = d["X"], d["U"]
     gmm = prior.gmm
     gmm.mu, gmm.log_weights, gmm.num_points = d["mu"], d["log_weights"], d["num_points"]
@@ -654,7 +683,7 @@ def _world_state_dict(state: WorldState) -> dict:
         "current": _linearised_dict(state.current),
         "dynamics_prior": _prior_dict(state.dynamics_prior),
         "policy_prior": _prior_dict(state.policy_prior),
-        "prior_rng": state.dynamics_prior.gmm.generator.get_state(),
+        "prior_rng": state.policy_prior.gmm.generator.get_state(),  # one generator for all priors
     }
 
 
@@ -665,4 +694,4 @@ def _load_world_state(state: WorldState, d: dict) -> None:
     state.current, state.previous = _linearised_from(d["current"]), None
     _load_prior(state.dynamics_prior, d["dynamics_prior"])
     _load_prior(state.policy_prior, d["policy_prior"])
-    state.dynamics_prior.gmm.generator.set_state(d["prior_rng"])
+    state.policy_prior.gmm.generator.set_state(d["prior_rng"])
