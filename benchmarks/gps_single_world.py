@@ -3,6 +3,7 @@
     python benchmarks/gps_single_world.py --robot three_link --task reach [--algo mdgps --iterations 10]
     python benchmarks/gps_single_world.py --task push --conditions 4 --trace   # where the block goes
     python benchmarks/gps_single_world.py --noise-smoothing 2 --dynamics-prior-per-condition  # GPS code's
+    python benchmarks/gps_single_world.py --task push --conditions 4 --trajectory-only  # no policy pull
 
 The distance is the task's (end-effector or object to goal) averaged over the last 5 steps
 of a deterministic rollout of the composed policy (not the local controllers) from each
@@ -11,7 +12,7 @@ the next iteration's ``sampled_cost`` says how far the fitted dynamics can be tr
 ``--trace`` adds, for the last iteration's samples, each training condition's end effector to
 object and object to goal distances (means over the samples) at a few time steps.
 The last line is one JSON object:
-``{"final_distance": [...], "success_distance": ..., "iterations": ..., "samples": ..., "wall_s": ...}``.
+``{"final_distance": [...], "success_distance": ..., "controllers_distance": [per iteration], ...}``.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ import torch
 
 from modnet.bank import ModuleBank
 from modnet.evaluate import evaluation_env, score
+from modnet.gps.badmm import BADMMConfig
 from modnet.gps.trainer import GPSConfig, GPSTrainer
 from modnet.worlds import get_world, task_spec
 
@@ -71,12 +73,33 @@ def main() -> None:
         action="store_true",
         help="one dynamics prior per condition (the GPS code's), not one per world",
     )
+    parser.add_argument(
+        "--trajectory-only",
+        action="store_true",
+        help="switch the policy's pull off (BADMM's policy weight held at 1e-6, no dual ascent, "
+        "4 SGD steps): trajectory optimisation alone; the network it reports is then untrained",
+    )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--trace", action="store_true", help="where the object goes, per condition")
     args = parser.parse_args()
     torch.set_num_threads(1)
     start = time.perf_counter()
     bank = ModuleBank.build([args.robot], [args.task], seed=args.seed, dropout=args.dropout)
+    alone = {}
+    if args.trajectory_only:
+        if args.algo != "badmm":
+            parser.error("--trajectory-only holds BADMM's policy weight; use it with --algo badmm")
+        weight = BADMMConfig.min_policy_weight
+        alone = dict(
+            sgd_steps=4,
+            initial_sgd_steps=4,
+            badmm=BADMMConfig(
+                dual_rate=0.0,
+                initial_policy_weight=weight,
+                min_policy_weight=weight,
+                max_policy_weight=weight,
+            ),
+        )
     config = GPSConfig(
         algo=args.algo,
         samples_per_condition=args.samples,
@@ -85,10 +108,12 @@ def main() -> None:
         dynamics_ridge=args.dynamics_ridge,
         noise_smoothing=args.noise_smoothing,
         dynamics_prior_per_condition=args.dynamics_prior_per_condition,
+        **alone,
     )
     trainer = GPSTrainer(bank, [(args.robot, args.task)], config)
+    name = f"{args.robot}/{args.task}"
     for i in range(args.iterations):
-        diag = trainer.step()[f"{args.robot}/{args.task}"]
+        diag = trainer.step()[name]
         print(f"iteration {i}: " + " ".join(f"{k}={v:.3g}" for k, v in diag.items()), flush=True)
     trace = last_samples_trace(trainer, args.robot, args.task) if args.trace else None
     distance = score(bank, args.robot, args.task, evaluation_env(args.robot, args.task)).distance
@@ -96,10 +121,12 @@ def main() -> None:
     print(
         json.dumps(
             {
-                "world": f"{args.robot}/{args.task}",
+                "world": name,
                 "algo": args.algo,
                 "noise_smoothing": args.noise_smoothing,
                 "dynamics_prior_per_condition": args.dynamics_prior_per_condition,
+                "trajectory_only": args.trajectory_only,
+                "controllers_distance": [round(h[name]["distance"], 4) for h in trainer.history],
                 "final_distance": [round(float(d), 4) for d in distance],
                 "success_distance": task_spec(args.task).success_distance,
                 "iterations": args.iterations,
