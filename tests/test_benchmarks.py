@@ -63,6 +63,25 @@ def test_gps_single_world_traces_where_the_object_goes():
     assert all(len(row) == 5 and row[0] > 0.9 for row in trace["ee_to_object"])  # the arm starts far away
 
 
+def test_gps_single_world_trajectory_only_holds_the_policy_weight_at_its_floor():
+    """``--trajectory-only``: BADMM's policy weight never leaves its floor, so the controllers
+    are optimised without the policy's pull; it is refused with MDGPS, which has no such weight."""
+    options = "--conditions 4 --samples 2 --iterations 2 --trajectory-only".split()
+    out = subprocess.run(
+        [sys.executable, "gps_single_world.py", *options], capture_output=True, text=True, timeout=600,
+        check=True, cwd=BENCHMARKS,
+    ).stdout.splitlines()
+    figures = json.loads(out[-1])
+    assert figures["trajectory_only"] is True and len(figures["controllers_distance"]) == 2
+    nu = [float(line.split("nu=")[1].split()[0]) for line in out if line.startswith("iteration")]
+    assert nu == [1e-6, 1e-6], nu
+    refused = subprocess.run(
+        [sys.executable, "gps_single_world.py", "--algo", "mdgps", "--trajectory-only"],
+        capture_output=True, text=True, timeout=120, cwd=BENCHMARKS,
+    )
+    assert refused.returncode != 0 and "use it with --algo badmm" in refused.stderr
+
+
 def load_benchmark(name: str):
     spec = importlib.util.spec_from_file_location(f"benchmark_{name}", BENCHMARKS / f"{name}.py")
     module = importlib.util.module_from_spec(spec)
