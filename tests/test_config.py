@@ -1,6 +1,7 @@
 """Typed run config, the conf/ groups, universes and their validation (all in-process, seconds)."""
 
 import dataclasses
+import functools
 
 import pytest
 from hydra import compose, initialize_config_dir
@@ -62,10 +63,11 @@ def test_literal_choices_and_values_no_type_rules_out_fail_with_the_key():
         ("logger.backend", "mlflow", "logger.backend must be one of wandb, csv"),
         ("gps.iterations", 0, "gps.iterations must be at least 1"),
         ("bank.dropout", 1.5, "dropout must be a probability"),
+        ("gps.badmm.max_policy_weight", 1e-3, r"gps\.badmm: .*max_policy_weight, got 1e-06 / 0.005 / 0.001"),
     ]:
         run = RunConfig(universe="tiny")
-        part, name = key.split(".")
-        setattr(getattr(run, part), name, value)
+        *path, name = key.split(".")
+        setattr(functools.reduce(getattr, path, run), name, value)
         with pytest.raises(ConfigError, match=message):
             run.check()
 

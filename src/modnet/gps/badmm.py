@@ -40,6 +40,14 @@ class BADMMConfig:
     max_policy_weight: float = 0.1
     max_target_shift: float = 1.0
 
+    def __post_init__(self) -> None:
+        low, start, high = self.min_policy_weight, self.initial_policy_weight, self.max_policy_weight
+        if not 0 < low <= start <= high:
+            raise ValueError(
+                "policy weights must satisfy 0 < min_policy_weight <= initial_policy_weight "
+                f"<= max_policy_weight, got {low:g} / {start:g} / {high:g}"
+            )
+
 
 @dataclass
 class Multipliers:
