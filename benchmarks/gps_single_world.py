@@ -4,11 +4,13 @@
     python benchmarks/gps_single_world.py --task push --conditions 4 --trace   # where the block goes
     python benchmarks/gps_single_world.py --noise-smoothing 2 --dynamics-prior-per-condition  # GPS code's
     python benchmarks/gps_single_world.py --task push --conditions 4 --trajectory-only  # no policy pull
+    python benchmarks/gps_single_world.py --task push --max-policy-weight 1e-3 --evaluate-on train
 
 The distance is the task's (end-effector or object to goal) averaged over the last 5 steps
 of a deterministic rollout of the composed policy (not the local controllers) from each
-test condition.  Each iteration prints the trainer's diagnostics (``predicted_cost`` against
-the next iteration's ``sampled_cost`` says how far the fitted dynamics can be trusted).
+test condition (or, with ``--evaluate-on train``, from each training condition).  Each
+iteration prints the trainer's diagnostics (``predicted_cost`` against the next iteration's
+``sampled_cost`` says how far the fitted dynamics can be trusted).
 ``--trace`` adds, for the last iteration's samples, each training condition's end effector to
 object and object to goal distances (means over the samples) at a few time steps.
 The last line is one JSON object:
@@ -79,6 +81,19 @@ def main() -> None:
         help="switch the policy's pull off (BADMM's policy weight held at 1e-6, no dual ascent, "
         "4 SGD steps): trajectory optimisation alone; the network it reports is then untrained",
     )
+    parser.add_argument(
+        "--max-policy-weight",
+        type=float,
+        default=None,
+        help=f"cap on BADMM's policy weight nu_t (default {BADMMConfig.max_policy_weight:g}; the initial "
+        "weight is lowered to it if above): how hard the policy may pull the controllers",
+    )
+    parser.add_argument(
+        "--evaluate-on",
+        choices=["test", "train"],
+        default="test",
+        help="score the network at the task's 4 test positions (default) or at its training conditions",
+    )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--trace", action="store_true", help="where the object goes, per condition")
     args = parser.parse_args()
@@ -100,6 +115,12 @@ def main() -> None:
                 max_policy_weight=weight,
             ),
         )
+    if args.max_policy_weight is not None:
+        if args.algo != "badmm" or args.trajectory_only:
+            parser.error("--max-policy-weight caps BADMM's policy weight; use it with --algo badmm alone")
+        weight = args.max_policy_weight
+        initial = min(BADMMConfig.initial_policy_weight, weight)
+        alone = dict(badmm=BADMMConfig(initial_policy_weight=initial, max_policy_weight=weight))
     config = GPSConfig(
         algo=args.algo,
         samples_per_condition=args.samples,
@@ -116,7 +137,15 @@ def main() -> None:
         diag = trainer.step()[name]
         print(f"iteration {i}: " + " ".join(f"{k}={v:.3g}" for k, v in diag.items()), flush=True)
     trace = last_samples_trace(trainer, args.robot, args.task) if args.trace else None
-    distance = score(bank, args.robot, args.task, evaluation_env(args.robot, args.task)).distance
+    on_train = args.evaluate_on == "train"
+    env = evaluation_env(
+        args.robot,
+        args.task,
+        conditions=args.evaluate_on,
+        num_conditions=args.conditions if on_train else None,
+        seed=config.condition_seed,
+    )
+    distance = score(bank, args.robot, args.task, env).distance
     wall = time.perf_counter() - start
     print(
         json.dumps(
@@ -126,6 +155,8 @@ def main() -> None:
                 "noise_smoothing": args.noise_smoothing,
                 "dynamics_prior_per_condition": args.dynamics_prior_per_condition,
                 "trajectory_only": args.trajectory_only,
+                "max_policy_weight": config.badmm.max_policy_weight,
+                "evaluated_on": args.evaluate_on,
                 "controllers_distance": [round(h[name]["distance"], 4) for h in trainer.history],
                 "final_distance": [round(float(d), 4) for d in distance],
                 "success_distance": task_spec(args.task).success_distance,

@@ -82,6 +82,26 @@ def test_gps_single_world_trajectory_only_holds_the_policy_weight_at_its_floor()
     assert refused.returncode != 0 and "use it with --algo badmm" in refused.stderr
 
 
+def test_gps_single_world_caps_the_policy_weight_and_scores_the_training_conditions():
+    """``--max-policy-weight`` bounds BADMM's nu_t (the initial weight is lowered to it);
+    ``--evaluate-on train`` scores the network at each of the world's training conditions."""
+    options = "--conditions 5 --samples 2 --iterations 2 --max-policy-weight 1e-3 --evaluate-on train".split()
+    out = subprocess.run(
+        [sys.executable, "gps_single_world.py", *options], capture_output=True, text=True, timeout=600,
+        check=True, cwd=BENCHMARKS,
+    ).stdout.splitlines()
+    figures = json.loads(out[-1])
+    assert figures["max_policy_weight"] == 1e-3 and figures["evaluated_on"] == "train"
+    assert len(figures["final_distance"]) == 5  # one per training condition, not the 4 test positions
+    nu = [float(line.split("nu=")[1].split()[0]) for line in out if line.startswith("iteration")]
+    assert len(nu) == 2 and all(1e-6 <= v <= 1e-3 for v in nu), nu
+    refused = subprocess.run(
+        [sys.executable, "gps_single_world.py", "--trajectory-only", "--max-policy-weight", "1e-3"],
+        capture_output=True, text=True, timeout=120, cwd=BENCHMARKS,
+    )
+    assert refused.returncode != 0 and "use it with --algo badmm alone" in refused.stderr
+
+
 def load_benchmark(name: str):
     spec = importlib.util.spec_from_file_location(f"benchmark_{name}", BENCHMARKS / f"{name}.py")
     module = importlib.util.module_from_spec(spec)
