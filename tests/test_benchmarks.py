@@ -63,43 +63,45 @@ def test_gps_single_world_traces_where_the_object_goes():
     assert all(len(row) == 5 and row[0] > 0.9 for row in trace["ee_to_object"])  # the arm starts far away
 
 
-def test_gps_single_world_trajectory_only_holds_the_policy_weight_at_its_floor():
-    """``--trajectory-only``: BADMM's policy weight never leaves its floor, so the controllers
-    are optimised without the policy's pull; it is refused with MDGPS, which has no such weight."""
-    options = "--conditions 4 --samples 2 --iterations 2 --trajectory-only".split()
+def single_world(*options: str) -> tuple[dict, list[float]]:
+    """``gps_single_world.py``'s JSON figures and BADMM's policy weight (mean nu) per iteration."""
     out = subprocess.run(
         [sys.executable, "gps_single_world.py", *options], capture_output=True, text=True, timeout=600,
         check=True, cwd=BENCHMARKS,
     ).stdout.splitlines()
-    figures = json.loads(out[-1])
-    assert figures["trajectory_only"] is True and len(figures["controllers_distance"]) == 2
     nu = [float(line.split("nu=")[1].split()[0]) for line in out if line.startswith("iteration")]
-    assert nu == [1e-6, 1e-6], nu
+    return json.loads(out[-1]), nu
+
+
+def single_world_refusal(*options: str) -> str:
+    """What ``gps_single_world.py`` says when it refuses ``options`` (before any training)."""
     refused = subprocess.run(
-        [sys.executable, "gps_single_world.py", "--algo", "mdgps", "--trajectory-only"],
-        capture_output=True, text=True, timeout=120, cwd=BENCHMARKS,
+        [sys.executable, "gps_single_world.py", *options], capture_output=True, text=True, timeout=120,
+        cwd=BENCHMARKS,
     )
-    assert refused.returncode != 0 and "use it with --algo badmm" in refused.stderr
+    assert refused.returncode != 0
+    return refused.stderr
+
+
+def test_gps_single_world_trajectory_only_holds_the_policy_weight_at_its_floor():
+    """``--trajectory-only``: BADMM's policy weight never leaves its floor, so the controllers
+    are optimised without the policy's pull; it is refused with MDGPS, which has no such weight."""
+    figures, nu = single_world(*"--conditions 4 --samples 2 --iterations 2 --trajectory-only".split())
+    assert figures["trajectory_only"] is True and len(figures["controllers_distance"]) == 2
+    assert nu == [1e-6, 1e-6], nu
+    assert "use it with --algo badmm" in single_world_refusal("--algo", "mdgps", "--trajectory-only")
 
 
 def test_gps_single_world_caps_the_policy_weight_and_scores_the_training_conditions():
     """``--max-policy-weight`` bounds BADMM's nu_t (the initial weight is lowered to it);
     ``--evaluate-on train`` scores the network at each of the world's training conditions."""
-    options = "--conditions 5 --samples 2 --iterations 2 --max-policy-weight 1e-3 --evaluate-on train".split()
-    out = subprocess.run(
-        [sys.executable, "gps_single_world.py", *options], capture_output=True, text=True, timeout=600,
-        check=True, cwd=BENCHMARKS,
-    ).stdout.splitlines()
-    figures = json.loads(out[-1])
+    options = "--conditions 5 --samples 2 --iterations 2 --max-policy-weight 1e-3 --evaluate-on train"
+    figures, nu = single_world(*options.split())
     assert figures["max_policy_weight"] == 1e-3 and figures["evaluated_on"] == "train"
     assert len(figures["final_distance"]) == 5  # one per training condition, not the 4 test positions
-    nu = [float(line.split("nu=")[1].split()[0]) for line in out if line.startswith("iteration")]
     assert len(nu) == 2 and all(1e-6 <= v <= 1e-3 for v in nu), nu
-    refused = subprocess.run(
-        [sys.executable, "gps_single_world.py", "--trajectory-only", "--max-policy-weight", "1e-3"],
-        capture_output=True, text=True, timeout=120, cwd=BENCHMARKS,
-    )
-    assert refused.returncode != 0 and "use it with --algo badmm alone" in refused.stderr
+    refusal = single_world_refusal("--trajectory-only", "--max-policy-weight", "1e-3")
+    assert "use it with --algo badmm alone" in refusal
 
 
 def load_benchmark(name: str):
