@@ -100,12 +100,12 @@ def main() -> None:
     torch.set_num_threads(1)
     start = time.perf_counter()
     bank = ModuleBank.build([args.robot], [args.task], seed=args.seed, dropout=args.dropout)
-    alone = {}
+    pull = {}  # GPSConfig options that change the policy's pull on the controllers
     if args.trajectory_only:
         if args.algo != "badmm":
             parser.error("--trajectory-only holds BADMM's policy weight; use it with --algo badmm")
         weight = BADMMConfig.min_policy_weight
-        alone = dict(
+        pull = dict(
             sgd_steps=4,
             initial_sgd_steps=4,
             badmm=BADMMConfig(
@@ -120,7 +120,10 @@ def main() -> None:
             parser.error("--max-policy-weight caps BADMM's policy weight; use it with --algo badmm alone")
         weight = args.max_policy_weight
         initial = min(BADMMConfig.initial_policy_weight, weight)
-        alone = dict(badmm=BADMMConfig(initial_policy_weight=initial, max_policy_weight=weight))
+        try:
+            pull = dict(badmm=BADMMConfig(initial_policy_weight=initial, max_policy_weight=weight))
+        except ValueError as err:  # e.g. a cap below the floor min_policy_weight
+            parser.error(f"--max-policy-weight {weight:g}: {err}")
     config = GPSConfig(
         algo=args.algo,
         samples_per_condition=args.samples,
@@ -129,7 +132,7 @@ def main() -> None:
         dynamics_ridge=args.dynamics_ridge,
         noise_smoothing=args.noise_smoothing,
         dynamics_prior_per_condition=args.dynamics_prior_per_condition,
-        **alone,
+        **pull,
     )
     trainer = GPSTrainer(bank, [(args.robot, args.task)], config)
     name = f"{args.robot}/{args.task}"

@@ -102,6 +102,7 @@ def test_gps_single_world_caps_the_policy_weight_and_scores_the_training_conditi
     assert len(nu) == 2 and all(1e-6 <= v <= 1e-3 for v in nu), nu
     refusal = single_world_refusal("--trajectory-only", "--max-policy-weight", "1e-3")
     assert "use it with --algo badmm alone" in refusal
+    assert "min_policy_weight" in single_world_refusal("--max-policy-weight", "1e-8")  # below the floor
 
 
 def load_benchmark(name: str):
