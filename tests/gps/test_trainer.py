@@ -109,6 +109,8 @@ def test_checkpoint_state_resumes_exactly(per_condition):
     other = dict(options, dynamics_prior_per_condition=not per_condition)
     with pytest.raises(ValueError, match="differ in gps.dynamics_prior_per_condition"):
         trainer_for(**other).load_state_dict(state)
+    with pytest.raises(ValueError, match="4 conditions x 20 steps, this trainer 5 x 20: gps.num_conditions"):
+        trainer_for(**options, num_conditions=5).load_state_dict(state)
     resumed = trainer_for(**options)
     resumed.load_state_dict(state)
     assert resumed.iteration == 1 and resumed.history == original.history[:1]

@@ -604,6 +604,14 @@ class GPSTrainer:
             raise ValueError(
                 f"checkpoint trains worlds {sorted(state['worlds'])}, this trainer {sorted(self.states)}"
             )
+        for name, world_state in state["worlds"].items():  # before anything is loaded
+            saved = tuple(world_state["controller"]["K"].shape[:2])
+            here = tuple(self.states[name].controller.gains.K.shape[:2])
+            if saved != here:
+                raise ValueError(
+                    f"checkpoint's {name} has {saved[0]} conditions x {saved[1]} steps, this trainer "
+                    f"{here[0]} x {here[1]}: gps.num_conditions and gps.horizon must match"
+                )
         self.bank.load_state_dict(state["bank"])
         self.optimizer.load_state_dict(state["optimizer"])
         torch.set_rng_state(state["torch_rng"])
