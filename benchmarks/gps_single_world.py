@@ -5,6 +5,7 @@
     python benchmarks/gps_single_world.py --noise-smoothing 2 --dynamics-prior-per-condition  # GPS code's
     python benchmarks/gps_single_world.py --task push --conditions 4 --trajectory-only  # no policy pull
     python benchmarks/gps_single_world.py --task push --max-policy-weight 1e-3 --evaluate-on train
+    python benchmarks/gps_single_world.py --task push --width 256 --sgd-steps 3000  # a larger network
 
 The distance is the task's (end-effector or object to goal) averaged over the last 5 steps
 of a deterministic rollout of the composed policy (not the local controllers) from each
@@ -94,16 +95,36 @@ def main() -> None:
         default="test",
         help="score the network at the task's 4 test positions (default) or at its training conditions",
     )
+    parser.add_argument(
+        "--width",
+        type=int,
+        default=None,
+        help="units in every hidden layer of both modules (default: the authors' 80; the depths, "
+        "3 task and 2 robot layers, and the 12-unit interface are kept)",
+    )
+    parser.add_argument(
+        "--sgd-steps",
+        type=int,
+        default=None,
+        help=f"SGD steps of the S-step, every iteration including the first (default {GPSConfig.sgd_steps})",
+    )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--trace", action="store_true", help="where the object goes, per condition")
     args = parser.parse_args()
     torch.set_num_threads(1)
     start = time.perf_counter()
-    bank = ModuleBank.build([args.robot], [args.task], seed=args.seed, dropout=args.dropout)
+    size = {}  # bank options that change the network's size
+    if args.width is not None:
+        if args.width < 1:
+            parser.error(f"--width must be a positive number of units, got {args.width}")
+        size = dict(task_hidden=(args.width,) * 3, robot_hidden=(args.width,) * 2)
+    bank = ModuleBank.build([args.robot], [args.task], seed=args.seed, dropout=args.dropout, **size)
     pull = {}  # GPSConfig options that change the policy's pull on the controllers
     if args.trajectory_only:
         if args.algo != "badmm":
             parser.error("--trajectory-only holds BADMM's policy weight; use it with --algo badmm")
+        if args.sgd_steps is not None:
+            parser.error("--trajectory-only fixes the SGD steps at 4; leave --sgd-steps out")
         weight = BADMMConfig.min_policy_weight
         pull = dict(
             sgd_steps=4,
@@ -124,6 +145,11 @@ def main() -> None:
             pull = dict(badmm=BADMMConfig(initial_policy_weight=initial, max_policy_weight=weight))
         except ValueError as err:  # e.g. a cap below the floor min_policy_weight
             parser.error(f"--max-policy-weight {weight:g}: {err}")
+    sgd = {}  # GPSConfig options of the S-step's length
+    if args.sgd_steps is not None:
+        if args.sgd_steps < 1:
+            parser.error(f"--sgd-steps must be at least 1, got {args.sgd_steps}")
+        sgd = dict(sgd_steps=args.sgd_steps, initial_sgd_steps=args.sgd_steps)
     config = GPSConfig(
         algo=args.algo,
         samples_per_condition=args.samples,
@@ -133,6 +159,7 @@ def main() -> None:
         noise_smoothing=args.noise_smoothing,
         dynamics_prior_per_condition=args.dynamics_prior_per_condition,
         **pull,
+        **sgd,
     )
     trainer = GPSTrainer(bank, [(args.robot, args.task)], config)
     name = f"{args.robot}/{args.task}"
@@ -160,6 +187,9 @@ def main() -> None:
                 "trajectory_only": args.trajectory_only,
                 "max_policy_weight": config.badmm.max_policy_weight,
                 "evaluated_on": args.evaluate_on,
+                "width": bank.config.task_hidden[0],
+                "sgd_steps": config.sgd_steps,
+                "network_parameters": sum(p.numel() for p in bank.parameters()),
                 "controllers_distance": [round(h[name]["distance"], 4) for h in trainer.history],
                 "final_distance": [round(float(d), 4) for d in distance],
                 "success_distance": task_spec(args.task).success_distance,
