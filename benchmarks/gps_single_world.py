@@ -9,7 +9,10 @@
 
 The distance is the task's (end-effector or object to goal) averaged over the last 5 steps
 of a deterministic rollout of the composed policy (not the local controllers) from each
-test condition (or, with ``--evaluate-on train``, from each training condition).  Each
+test condition (or, with ``--evaluate-on train``, from each training condition; with
+``random``, from further random ones).  Beside it, ``start_distance`` is where each
+rollout started (an untouched object stays there); ``closer`` and ``farther`` count the
+conditions where the policy ends more than 1 cm closer or farther than it started.  Each
 iteration prints the trainer's diagnostics (``predicted_cost`` against the next iteration's
 ``sampled_cost`` says how far the fitted dynamics can be trusted).
 ``--trace`` adds, for the last iteration's samples, each training condition's end effector to
@@ -27,10 +30,12 @@ import time
 import torch
 
 from modnet.bank import ModuleBank
-from modnet.evaluate import evaluation_env, score
+from modnet.evaluate import evaluation_env, rollout
 from modnet.gps.badmm import BADMMConfig
 from modnet.gps.trainer import GPSConfig, GPSTrainer
 from modnet.worlds import get_world, task_spec
+
+MOVED = 0.01  # a final distance this much below or above the start counts as closer or farther
 
 
 def last_samples_trace(trainer: GPSTrainer, robot: str, task: str) -> dict:
@@ -91,9 +96,16 @@ def main() -> None:
     )
     parser.add_argument(
         "--evaluate-on",
-        choices=["test", "train"],
+        choices=["test", "train", "random"],
         default="test",
-        help="score the network at the task's 4 test positions (default) or at its training conditions",
+        help="score the network at the task's 4 test positions (default), at its training conditions, "
+        "or at --random-conditions further random ones",
+    )
+    parser.add_argument(
+        "--random-conditions",
+        type=int,
+        default=20,
+        help="how many random conditions --evaluate-on random draws (run.py's eval.random_conditions)",
     )
     parser.add_argument(
         "--width",
@@ -111,6 +123,8 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--trace", action="store_true", help="where the object goes, per condition")
     args = parser.parse_args()
+    if args.random_conditions < 1:
+        parser.error(f"--random-conditions must be at least 1, got {args.random_conditions}")
     torch.set_num_threads(1)
     start = time.perf_counter()
     size = {}  # bank options that change the network's size
@@ -167,15 +181,13 @@ def main() -> None:
         diag = trainer.step()[name]
         print(f"iteration {i}: " + " ".join(f"{k}={v:.3g}" for k, v in diag.items()), flush=True)
     trace = last_samples_trace(trainer, args.robot, args.task) if args.trace else None
-    on_train = args.evaluate_on == "train"
+    count = {"train": args.conditions, "random": args.random_conditions}.get(args.evaluate_on)
     env = evaluation_env(
-        args.robot,
-        args.task,
-        conditions=args.evaluate_on,
-        num_conditions=args.conditions if on_train else None,
-        seed=config.condition_seed,
+        args.robot, args.task, conditions=args.evaluate_on, num_conditions=count, seed=config.condition_seed
     )
-    distance = score(bank, args.robot, args.task, env).distance
+    td, _ = rollout(bank, args.robot, args.task, env)
+    distance = env.final_distance(td)
+    start_distance = env.world.task.distance(td["task", "state"][:, 0].to(torch.float64))
     wall = time.perf_counter() - start
     print(
         json.dumps(
@@ -192,6 +204,9 @@ def main() -> None:
                 "network_parameters": sum(p.numel() for p in bank.parameters()),
                 "controllers_distance": [round(h[name]["distance"], 4) for h in trainer.history],
                 "final_distance": [round(float(d), 4) for d in distance],
+                "start_distance": [round(float(d), 4) for d in start_distance],
+                "closer": int((distance < start_distance - MOVED).sum()),
+                "farther": int((distance > start_distance + MOVED).sum()),
                 "success_distance": task_spec(args.task).success_distance,
                 "iterations": args.iterations,
                 "samples": trainer.samples["trajectories"],

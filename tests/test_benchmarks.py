@@ -105,17 +105,24 @@ def test_gps_single_world_caps_the_policy_weight_and_scores_the_training_conditi
     assert "min_policy_weight" in single_world_refusal("--max-policy-weight", "1e-8")  # below the floor
 
 
-def test_gps_single_world_sizes_the_network_and_its_sgd_steps():
+def test_gps_single_world_sizes_the_network_and_scores_random_conditions():
     """``--width`` sets every hidden layer of both modules (depths and interface kept) and
-    ``--sgd-steps`` the S-step's length; the JSON counts the network's parameters."""
+    ``--sgd-steps`` the S-step's length; ``--evaluate-on random`` scores further random
+    conditions, each beside the distance it started at (where an untouched object stays)."""
+
     def parameters(bank: ModuleBank) -> int:
         return sum(p.numel() for p in bank.parameters())
 
-    figures, _ = single_world(*"--conditions 4 --samples 2 --iterations 1 --width 32 --sgd-steps 3".split())
+    options = "--conditions 4 --samples 2 --iterations 1 --width 32 --sgd-steps 3 --evaluate-on random"
+    figures, _ = single_world(*options.split(), "--random-conditions", "3")
     narrow = ModuleBank.build(["three_link"], ["reach"], task_hidden=(32,) * 3, robot_hidden=(32,) * 2)
     assert figures["width"] == 32 and figures["sgd_steps"] == 3
     assert figures["network_parameters"] == parameters(narrow)
     assert parameters(narrow) < parameters(ModuleBank.build(["three_link"], ["reach"]))
+    env = evaluation_env("three_link", "reach", conditions="random", num_conditions=3)
+    start = env.world.task.distance(env.reset()["task", "state"].to(torch.float64))
+    assert figures["start_distance"] == pytest.approx(start.tolist(), abs=1e-4)
+    assert len(figures["final_distance"]) == 3 and figures["closer"] + figures["farther"] <= 3
     assert "leave --sgd-steps out" in single_world_refusal("--trajectory-only", "--sgd-steps", "10")
     assert "positive number of units" in single_world_refusal("--width", "0")
 
