@@ -123,68 +123,58 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--trace", action="store_true", help="where the object goes, per condition")
     args = parser.parse_args()
-    if args.random_conditions < 1:
-        parser.error(f"--random-conditions must be at least 1, got {args.random_conditions}")
+    if args.trajectory_only and args.algo != "badmm":
+        parser.error("--trajectory-only holds BADMM's policy weight; use it with --algo badmm")
+    if args.trajectory_only and args.sgd_steps is not None:
+        parser.error("--trajectory-only fixes the SGD steps at 4; leave --sgd-steps out")
+    if args.max_policy_weight is not None and (args.algo != "badmm" or args.trajectory_only):
+        parser.error("--max-policy-weight caps BADMM's policy weight; use it with --algo badmm alone")
     torch.set_num_threads(1)
     start = time.perf_counter()
-    size = {}  # bank options that change the network's size
-    if args.width is not None:
-        if args.width < 1:
-            parser.error(f"--width must be a positive number of units, got {args.width}")
-        size = dict(task_hidden=(args.width,) * 3, robot_hidden=(args.width,) * 2)
-    bank = ModuleBank.build([args.robot], [args.task], seed=args.seed, dropout=args.dropout, **size)
-    pull = {}  # GPSConfig options that change the policy's pull on the controllers
+    pull = {}  # BADMMConfig options: how hard the policy pulls the controllers
+    sgd = {}  # the S-step's length
     if args.trajectory_only:
-        if args.algo != "badmm":
-            parser.error("--trajectory-only holds BADMM's policy weight; use it with --algo badmm")
-        if args.sgd_steps is not None:
-            parser.error("--trajectory-only fixes the SGD steps at 4; leave --sgd-steps out")
         weight = BADMMConfig.min_policy_weight
         pull = dict(
-            sgd_steps=4,
-            initial_sgd_steps=4,
-            badmm=BADMMConfig(
-                dual_rate=0.0,
-                initial_policy_weight=weight,
-                min_policy_weight=weight,
-                max_policy_weight=weight,
-            ),
+            dual_rate=0.0, initial_policy_weight=weight, min_policy_weight=weight, max_policy_weight=weight
         )
+        sgd = dict(sgd_steps=4, initial_sgd_steps=4)
     if args.max_policy_weight is not None:
-        if args.algo != "badmm" or args.trajectory_only:
-            parser.error("--max-policy-weight caps BADMM's policy weight; use it with --algo badmm alone")
         weight = args.max_policy_weight
-        initial = min(BADMMConfig.initial_policy_weight, weight)
-        try:
-            pull = dict(badmm=BADMMConfig(initial_policy_weight=initial, max_policy_weight=weight))
-        except ValueError as err:  # e.g. a cap below the floor min_policy_weight
-            parser.error(f"--max-policy-weight {weight:g}: {err}")
-    sgd = {}  # GPSConfig options of the S-step's length
+        initial = min(BADMMConfig.initial_policy_weight, weight)  # lowered to the cap if above it
+        pull = dict(initial_policy_weight=initial, max_policy_weight=weight)
     if args.sgd_steps is not None:
-        if args.sgd_steps < 1:
-            parser.error(f"--sgd-steps must be at least 1, got {args.sgd_steps}")
         sgd = dict(sgd_steps=args.sgd_steps, initial_sgd_steps=args.sgd_steps)
-    config = GPSConfig(
-        algo=args.algo,
-        samples_per_condition=args.samples,
-        num_conditions=args.conditions,
-        seed=args.seed,
-        dynamics_ridge=args.dynamics_ridge,
-        noise_smoothing=args.noise_smoothing,
-        dynamics_prior_per_condition=args.dynamics_prior_per_condition,
-        **pull,
-        **sgd,
-    )
+    size = {} if args.width is None else dict(task_hidden=(args.width,) * 3, robot_hidden=(args.width,) * 2)
+    count = {"train": args.conditions, "random": args.random_conditions}.get(args.evaluate_on)
+    try:  # the library's own checks of every option, before any training
+        bank = ModuleBank.build([args.robot], [args.task], seed=args.seed, dropout=args.dropout, **size)
+        config = GPSConfig(
+            algo=args.algo,
+            samples_per_condition=args.samples,
+            num_conditions=args.conditions,
+            seed=args.seed,
+            dynamics_ridge=args.dynamics_ridge,
+            noise_smoothing=args.noise_smoothing,
+            dynamics_prior_per_condition=args.dynamics_prior_per_condition,
+            badmm=BADMMConfig(**pull),
+            **sgd,
+        )
+        env = evaluation_env(
+            args.robot,
+            args.task,
+            conditions=args.evaluate_on,
+            num_conditions=count,
+            seed=config.condition_seed,
+        )
+    except ValueError as err:  # unknown robot or task, a width or step count below 1, a cap below the floor
+        parser.error(str(err))
     trainer = GPSTrainer(bank, [(args.robot, args.task)], config)
     name = f"{args.robot}/{args.task}"
     for i in range(args.iterations):
         diag = trainer.step()[name]
         print(f"iteration {i}: " + " ".join(f"{k}={v:.3g}" for k, v in diag.items()), flush=True)
     trace = last_samples_trace(trainer, args.robot, args.task) if args.trace else None
-    count = {"train": args.conditions, "random": args.random_conditions}.get(args.evaluate_on)
-    env = evaluation_env(
-        args.robot, args.task, conditions=args.evaluate_on, num_conditions=count, seed=config.condition_seed
-    )
     td, _ = rollout(bank, args.robot, args.task, env)
     distance = env.final_distance(td)
     start_distance = env.world.task.distance(td["task", "state"][:, 0].to(torch.float64))

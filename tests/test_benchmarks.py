@@ -124,7 +124,8 @@ def test_gps_single_world_sizes_the_network_and_scores_random_conditions():
     assert figures["start_distance"] == pytest.approx(start.tolist(), abs=1e-4)
     assert len(figures["final_distance"]) == 3 and figures["closer"] + figures["farther"] <= 3
     assert "leave --sgd-steps out" in single_world_refusal("--trajectory-only", "--sgd-steps", "10")
-    assert "positive number of units" in single_world_refusal("--width", "0")
+    assert "hidden must hold positive integers" in single_world_refusal("--width", "0")
+    assert "valid robots: three_link" in single_world_refusal("--robot", "six_link")  # before any training
 
 
 def load_benchmark(name: str):
