@@ -286,7 +286,7 @@ def main(cfg: DictConfig) -> None:
         log.scalars(
             {
                 f"zero_shot/{method}/{stat}": results["methods"][method][stat]
-                for method in ("composed", "random", "wrong_task")
+                for method in ("composed", "random", "wrong_task", "start")
                 if results["methods"][method]
                 for stat in ("mean", "success_rate")
             },

@@ -177,7 +177,7 @@ def main() -> None:
     trace = last_samples_trace(trainer, args.robot, args.task) if args.trace else None
     td, _ = rollout(bank, args.robot, args.task, env)
     distance = env.final_distance(td)
-    start_distance = env.world.task.distance(td["task", "state"][:, 0].to(torch.float64))
+    start_distance = env.start_distance(td)
     wall = time.perf_counter() - start
     print(
         json.dumps(

@@ -97,8 +97,12 @@ def zero_shot(run_dir: Path, experiment: str, docs: Path = DOCS) -> dict:
     wrong = methods["wrong_task"]  # None where no other task module reads this world's task state
     n = len(methods["composed"]["distance"])
     wrong_distance = wrong["distance"] if wrong else [None] * n
-    rows = zip(methods["composed"]["distance"], methods["random"]["distance"], wrong_distance, strict=True)
+    # where each position starts (an untouched object's distance); None: run before results recorded it
+    start = methods["start"]["distance"] if methods.get("start") else [None] * n
+    ours, random = methods["composed"]["distance"], methods["random"]["distance"]
+    rows = zip(ours, random, wrong_distance, start, strict=True)
     names = ["composed", "random"] + (["wrong_task"] if wrong else [])
+    means = names + (["start"] if methods.get("start") else [])
     out = {
         "experiment": experiment,
         "universe": results["universe"],
@@ -109,10 +113,15 @@ def zero_shot(run_dir: Path, experiment: str, docs: Path = DOCS) -> dict:
         "success_distance": results["success_distance"],
         "wrong_task_module": wrong["task"] if wrong else None,
         "positions": [
-            {"ours": _round(o), "random": _round(r), "wrong_task": None if w is None else _round(w)}
-            for o, r, w in rows
+            {
+                "ours": _round(o),
+                "random": _round(r),
+                "wrong_task": None if w is None else _round(w),
+                "start": None if s is None else _round(s),
+            }
+            for o, r, w, s in rows
         ],
-        "means": {name: _round(methods[name]["mean"]) for name in names},
+        "means": {name: _round(methods[name]["mean"]) for name in means},
         "success_rate": {name: methods[name]["success_rate"] for name in names},
         "samples": results["samples"],
         "wall_s": _wall_s(results),
@@ -175,6 +184,7 @@ def _extended(results: dict) -> dict | None:
         "ours_success_rate": m["composed"]["success_rate"],
         "random_mean": _round(m["random"]["mean"]),
         "wrong_task_mean": _round(m["wrong_task"]["mean"]) if m["wrong_task"] else None,
+        "start_mean": _round(m["start"]["mean"]) if m.get("start") else None,
     }
 
 

@@ -102,7 +102,9 @@ def test_a_two_job_joblib_multirun_writes_two_results_and_aggregates(tmp_path):
     job = next(r.parent for r in results if json.loads(r.read_text())["holdout"] == "four_link/reach_black")
     one = publish("zero-shot", str(job), "--experiment", "tiny")
     assert one["holdout"] == "four_link/reach_black" and len(one["positions"]) == 4
-    assert set(one["positions"][0]) == {"ours", "random", "wrong_task"} and one["wall_s"] > 0
+    assert set(one["positions"][0]) == {"ours", "random", "wrong_task", "start"} and one["wall_s"] > 0
+    starts = [position["start"] for position in one["positions"]]  # where each arm started
+    assert one["means"]["start"] == pytest.approx(sum(starts) / len(starts), abs=1e-4) and min(starts) > 0
     both = publish("algorithms", str(job), str(job), "--experiment", "tiny_algorithms")
     assert [r["algo"] for r in both["runs"]] == ["badmm", "badmm"]
     code = json.loads((job / "results.json").read_text())["code"]  # the commit that ran, in every form

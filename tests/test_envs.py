@@ -5,6 +5,7 @@ import gc
 import numpy as np
 import pytest
 import torch
+from tensordict.nn import TensorDictModule
 from torchrl.envs.utils import check_env_specs
 
 import modnet
@@ -77,6 +78,23 @@ def test_rewards_are_the_negative_world_cost():
     td = env.rollout(4)
     cost = env.world.cost(td["next", "robot", "state"], td["next", "task", "state"], td["action"])
     torch.testing.assert_close(td["next", "reward"].squeeze(-1), -cost)
+
+
+def test_start_distance_is_where_an_untouched_object_stays():
+    def constant(torque):
+        def act(step):
+            return torch.full((*step.shape[:-1], 4), torque)
+
+        return TensorDictModule(act, in_keys=["step_count"], out_keys=["action"])
+
+    push = modnet.make_env("four_link", "push", num_envs=4, horizon=10, conditions="test")
+    still = push.rollout(10, constant(0.0))
+    start = push.start_distance(still)
+    torch.testing.assert_close(start, push.world.task.distance(push.reset()["task", "state"].double()))
+    torch.testing.assert_close(push.final_distance(still), start)  # nobody touched the block
+    reach = modnet.make_env("four_link", "reach", num_envs=4, horizon=10, conditions="test")
+    moving = reach.rollout(10, constant(1.0))
+    assert (reach.start_distance(moving) - reach.final_distance(moving)).abs().min() > 0.01  # the arm moved
 
 
 def test_partial_reset_and_chosen_conditions():

@@ -51,7 +51,11 @@ def test_zero_shot_scores_every_method_on_every_test_condition(bank, env):
     assert list(result.wrong_task_each) == ["reach_red"]
     assert result.wrong_task == ("reach_red", result.wrong_task_each["reach_red"])
     assert result.random.distance != result.composed.distance  # a different network
+    reset = env.world.task.distance(env.reset()["task", "state"].double())
+    assert result.start.distance == pytest.approx(reset.tolist())  # before any action
+    assert result.start.distance != result.composed.distance  # the arm moved
     methods = result.to_json()
+    assert methods["start"] == result.start.to_json()
     assert methods["wrong_task"]["task"] == "reach_red"
     assert methods["wrong_task"]["distance"] == methods["wrong_task_each"]["reach_red"]["distance"]
 
@@ -100,10 +104,13 @@ def test_report_table_csv_and_figure_from_results(bank, env, tmp_path):
         "methods": zero_shot(bank, *HELD_OUT, env).to_json(),
     }
     table = zero_shot_table(results).splitlines()
-    assert table[1].split() == ["condition", "random", "network", "wrong", "task", "(reach_red)", "composed"]
+    assert table[1].split() == [
+        "condition", "at", "start", "random", "network", "wrong", "task", "(reach_red)", "composed"
+    ]
     assert len(table) == 2 + 4 + 2
     rows = write_zero_shot_csv(results, tmp_path / "z.csv").read_text().splitlines()
-    assert rows[0] == "condition,random,wrong_task,wrong_task:reach_red,composed" and len(rows) == 7
+    assert rows[0] == "condition,start,random,wrong_task,wrong_task:reach_red,composed" and len(rows) == 7
+    assert rows[1].split(",")[1] == f"{results['methods']['start']['distance'][0]:.6f}"
     plot_zero_shot(results, tmp_path / "z.png")
     assert (tmp_path / "z.png").stat().st_size > 1000
 

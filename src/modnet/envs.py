@@ -254,6 +254,12 @@ class WorldEnv(EnvBase):
         task_state = rollout["next", "task", "state"].to(torch.float64)
         return self.world.task.distance(task_state)[:, -last:].mean(-1)
 
+    def start_distance(self, rollout: TensorDictBase) -> torch.Tensor:
+        """The task's distance at the rollout's first state, ``[B]``: where an object nobody
+        touches stays (for reaching, where the arm starts)."""
+        task_state = rollout["task", "state"][:, 0].to(torch.float64)
+        return self.world.task.distance(task_state)
+
     def render_frames(self, height: int = PIXELS_SHAPE[0], width: int = PIXELS_SHAPE[1]) -> np.ndarray:
         """RGB frames ``[B, height, width, 3]`` of every copy from the top camera."""
         if (height, width) not in self._picture_renderers:

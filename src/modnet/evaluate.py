@@ -10,6 +10,10 @@ the task's ``success_distance``.  Two baselines must fail where the composition 
 * ``wrong_task``: the right robot module with each other task module (reported one by one,
   and the best of them, i.e. the lowest mean distance).
 
+Beside them, ``start`` is each condition's distance before any action: where an object stays
+when no policy touches it (for reaching, where the arm starts).  A policy that ends above it
+left things worse than it found them.
+
 :func:`finetune` runs GPS on the held-out world from the composed modules and the wrong task
 module (both without the cost's shaping term, as in the paper), and from scratch with and
 without it, and records the neural network policy's test distance after every iteration.
@@ -20,7 +24,7 @@ Examples:
     >>> env = evaluation_env("four_link", "reach_black", horizon=10)
     >>> result = zero_shot(bank, "four_link", "reach_black", env)
     >>> sorted(result.to_json())
-    ['composed', 'random', 'wrong_task', 'wrong_task_each']
+    ['composed', 'random', 'start', 'wrong_task', 'wrong_task_each']
     >>> len(result.composed.distance)  # one per test condition
     4
 """
@@ -107,6 +111,7 @@ class Scores:
 class ZeroShot:
     """The held-out world's zero-shot scores: composed modules and the two baselines.
 
+    ``start`` holds each condition's distance before any action (an untouched object's).
     ``frames`` (``[F, B, H, W, 3]`` uint8) is the composed rollout, when it was recorded.
     ``skipped`` names the wrong task modules that cannot read the held-out world's task
     state, and why.
@@ -115,6 +120,7 @@ class ZeroShot:
     composed: Scores
     random: Scores
     wrong_task_each: dict[str, Scores]
+    start: Scores
     skipped: dict[str, str] = field(default_factory=dict)
     frames: np.ndarray | None = None
 
@@ -132,6 +138,7 @@ class ZeroShot:
             "random": self.random.to_json(),
             "wrong_task": None if best is None else {"task": best[0], **best[1].to_json()},
             "wrong_task_each": {task: s.to_json() for task, s in self.wrong_task_each.items()},
+            "start": self.start.to_json(),
         }
         if self.skipped:
             methods["wrong_task_skipped"] = dict(self.skipped)
@@ -234,7 +241,8 @@ def zero_shot(
     baseline_seed: int = 12345,
     frames: tuple[int, int, int] | None = None,
 ) -> ZeroShot:
-    """Score the composed modules, a random network and every wrong task module on ``env``'s conditions.
+    """Score the composed modules, a random network and every wrong task module on ``env``'s
+    conditions, beside the distance each condition starts from.
 
     ``env`` is the held-out world (:func:`evaluation_env`); ``frames`` records the composed
     rollout (see :func:`rollout`).
@@ -242,6 +250,7 @@ def zero_shot(
     td, pictures = rollout(bank, robot, task, env, frames)
     success = env.world.task.success_distance
     composed = Scores(env.final_distance(td).tolist(), success)
+    start = Scores(env.start_distance(td).tolist(), success)
     random = score(bank.fresh_copy(seed=baseline_seed), robot, task, env)
     wrong, skipped = {}, {}
     for other in bank_tasks(bank):
@@ -252,7 +261,7 @@ def zero_shot(
             wrong[other] = score(bank, robot, other, env)
         else:
             skipped[other] = reason
-    return ZeroShot(composed, random, wrong, skipped, pictures)
+    return ZeroShot(composed, random, wrong, start, skipped, pictures)
 
 
 def bank_tasks(bank: ModuleBank) -> tuple[str, ...]:

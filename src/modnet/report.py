@@ -8,16 +8,17 @@ can show them.
 
 Examples:
     >>> results = {"holdout": "four_link/reach_black", "success_distance": 0.1, "methods": {
+    ...     "start": {"distance": [0.8, 0.6], "mean": 0.7, "success_rate": 0.0},
     ...     "composed": {"distance": [0.05, 0.12], "mean": 0.085, "success_rate": 0.5},
     ...     "random": {"distance": [1.2, 1.3], "mean": 1.25, "success_rate": 0.0},
     ...     "wrong_task": {"task": "reach_red", "distance": [0.9, 1.1], "mean": 1.0, "success_rate": 0.0}}}
     >>> print(zero_shot_table(results))
     Zero-shot four_link/reach_black: distance averaged over the last 5 steps (success below 0.1)
-    condition  random network  wrong task (reach_red)  composed
-            1           1.200                   0.900     0.050
-            2           1.300                   1.100     0.120
-         mean           1.250                   1.000     0.085
-      success            0.00                    0.00      0.50
+    condition  at start  random network  wrong task (reach_red)  composed
+            1     0.800           1.200                   0.900     0.050
+            2     0.600           1.300                   1.100     0.120
+         mean     0.700           1.250                   1.000     0.085
+      success      0.00            0.00                    0.00      0.50
 """
 
 from __future__ import annotations
@@ -50,8 +51,8 @@ __all__ = [
     "zero_shot_table",
 ]
 
-LABELS = {"random": "random network", "wrong_task": "wrong task", "composed": "composed"}
-COLORS = {"random": "tab:gray", "wrong_task": "tab:orange", "composed": "tab:blue"}
+LABELS = {"start": "at start", "random": "random network", "wrong_task": "wrong task", "composed": "composed"}
+COLORS = {"start": "silver", "random": "tab:gray", "wrong_task": "tab:orange", "composed": "tab:blue"}
 
 
 def write_json(path: str | os.PathLike, data: Any) -> Path:
@@ -95,8 +96,10 @@ def code_version(package_dir: str | os.PathLike | None = None) -> dict[str, Any]
 
 
 def _columns(methods: Mapping[str, Any]) -> list[tuple[str, dict[str, Any]]]:
-    """(header, scores) of the table's columns in the paper's order: random, wrong task, composed."""
-    columns = [(LABELS["random"], methods["random"])]
+    """(header, scores) of the table's columns: the distance at the start (where the run recorded
+    it), then the paper's order: random, wrong task, composed."""
+    columns = [(LABELS["start"], methods["start"])] if methods.get("start") else []
+    columns.append((LABELS["random"], methods["random"]))
     if methods.get("wrong_task"):
         columns.append((f"{LABELS['wrong_task']} ({methods['wrong_task']['task']})", methods["wrong_task"]))
     columns.append((LABELS["composed"], methods["composed"]))
@@ -104,7 +107,8 @@ def _columns(methods: Mapping[str, Any]) -> list[tuple[str, dict[str, Any]]]:
 
 
 def zero_shot_table(results: Mapping[str, Any]) -> str:
-    """The paper's table: one row per test condition, random network | wrong task module | composed."""
+    """The paper's table: one row per test condition, random network | wrong task module | composed,
+    after the distance each condition starts from."""
     columns = _columns(results["methods"])
     headers = ["condition"] + [h for h, _ in columns]
     rows = [
@@ -126,9 +130,10 @@ def zero_shot_table(results: Mapping[str, Any]) -> str:
 
 
 def write_zero_shot_csv(results: Mapping[str, Any], path: str | os.PathLike) -> Path:
-    """One row per test condition: random, best wrong task, each wrong task, composed distances."""
+    """One row per test condition: start, random, best wrong task, each wrong task, composed distances."""
     methods = results["methods"]
-    columns = {"random": methods["random"]}
+    columns = {"start": methods["start"]} if methods.get("start") else {}
+    columns["random"] = methods["random"]
     if methods.get("wrong_task"):
         columns["wrong_task"] = methods["wrong_task"]
     columns |= {f"wrong_task:{task}": scores for task, scores in methods["wrong_task_each"].items()}
@@ -178,9 +183,10 @@ def plot_learning_curves(
 
 
 def plot_zero_shot(results: Mapping[str, Any], path: str | os.PathLike | None = None) -> Figure:
-    """Bars per test condition (and their mean): random network, wrong task module, composed."""
+    """Bars per test condition (and their mean): the distance at the start, random network, wrong
+    task module, composed."""
     methods = results["methods"]
-    keys = [k for k in ("random", "wrong_task", "composed") if methods.get(k)]
+    keys = [k for k in ("start", "random", "wrong_task", "composed") if methods.get(k)]
     n = len(methods["composed"]["distance"])
     fig = Figure(figsize=(1.2 * (n + 1) + 2, 3.6), layout="constrained")
     ax = fig.subplots()
