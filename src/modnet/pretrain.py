@@ -55,9 +55,12 @@ from modnet.modules import BankModule, check_positive_ints
 from modnet.specs import PIXELS_SHAPE
 from modnet.worlds import SCENE_STREAM, World, get_world
 
-__all__ = ["PretrainConfig", "object_slots", "objects", "pretrain_vision", "render_scenes"]
+__all__ = ["PretrainConfig", "object_slots", "objects", "pretrain_vision", "probe_vision", "render_scenes"]
 
 VALIDATION_FRACTION = 0.1
+#: appended to a module's pretraining stream: the probe's scenes (:func:`probe_vision`) are
+#: neither pretraining scenes nor any condition set's
+PROBE_STREAM = 1
 
 
 @dataclass(frozen=True)
@@ -159,15 +162,8 @@ def pretrain_vision(
     """
     if config.images == 0:
         return {}
-    users: dict[tuple[str, str], tuple[BankModule, list[World]]] = {}
-    for robot, task in worlds:
-        world = get_world(robot, task)
-        for factor, name in bank.slot_names((robot, task)):
-            module = bank.get(factor, name)
-            if module.module.pixels is not None and object_slots(world):
-                users.setdefault((factor, name), (module, []))[1].append(world)
     report = {}
-    for (factor, name), (module, module_worlds) in users.items():
+    for (factor, name), (module, module_worlds) in _vision_modules(bank, worlds).items():
         start = time.perf_counter()
         label = f"{factor}/{name}"
         rng = np.random.default_rng([config.seed, SCENE_STREAM, zlib.crc32(name.encode())])
@@ -177,6 +173,84 @@ def pretrain_vision(
         targets = torch.from_numpy(np.concatenate([s[1] for s in scenes]))
         figures = _regress(module.module.pixels, images, targets, objects(module_worlds[0]), config)
         report[label] = {**figures, "seconds": time.perf_counter() - start}
+    return report
+
+
+def _vision_modules(
+    bank: ModuleBank, worlds: Sequence[tuple[str, str]]
+) -> dict[tuple[str, str], tuple[BankModule, list[World]]]:
+    """The modules that read images in the policies of ``worlds`` (and whose task shows objects),
+    keyed ``(factor, name)``, each with the worlds of ``worlds`` that use it."""
+    users: dict[tuple[str, str], tuple[BankModule, list[World]]] = {}
+    for robot, task in worlds:
+        world = get_world(robot, task)
+        for factor, name in bank.slot_names((robot, task)):
+            module = bank.get(factor, name)
+            if module.module.pixels is not None and object_slots(world):
+                users.setdefault((factor, name), (module, []))[1].append(world)
+    return users
+
+
+@torch.no_grad()
+def probe_vision(
+    bank: ModuleBank, worlds: Sequence[tuple[str, str]], scenes: int, seed: int = 0, ridge: float = 1e-6
+) -> dict[str, dict[str, Any]]:
+    """How well each vision module's feature points still show where the objects are: a linear probe.
+
+    Pretraining teaches the convolutions to find the objects; GPS then trains them end to
+    end on a few scenes, and nothing keeps them finding the objects elsewhere.  The probe
+    measures what a bank's convolutions show *now*, without training them: for every module
+    that reads images in the policies of ``worlds``, ``scenes`` random scenes per world
+    (rendered as for pretraining, from a random stream of their own, apart from the
+    pretraining's and every condition set's) go through its frozen
+    :class:`~modnet.modules.PixelEncoder`, and a ridge least-squares map from the feature
+    points (and a constant) to the objects' positions is fitted on the first
+    ``1 - VALIDATION_FRACTION`` of each world's scenes, pooled over the worlds.
+
+    Returns, keyed ``"factor/name"``: ``worlds``, the held-out scenes' error per world and
+    object (mean planar distance in metres), and ``baseline_error``, the error of guessing
+    the training scenes' mean position, pooled.
+
+    Examples:
+        >>> bank = ModuleBank.build(["three_link"], ["reach"], pixels=True, seed=0)
+        >>> report = probe_vision(bank, [("three_link", "reach")], scenes=20)
+        >>> list(report["task/reach"]["worlds"])
+        ['three_link/reach']
+        >>> list(report["task/reach"]["worlds"]["three_link/reach"])
+        ['target']
+    """
+    if scenes < 2:
+        raise ValueError(f"scenes must be at least 2 per world (some to fit, some to test), got {scenes}")
+    report = {}
+    for (factor, name), (module, module_worlds) in _vision_modules(bank, worlds).items():
+        encoder, was_training = module.module.pixels, module.training
+        module.eval()
+        rng = np.random.default_rng([seed, SCENE_STREAM, zlib.crc32(name.encode()), PROBE_STREAM])
+        n_val = max(1, int(scenes * VALIDATION_FRACTION))
+        fit, held_out = [], {}
+        for world in module_worlds:
+            images, positions = render_scenes(world, scenes, rng)
+            points = torch.cat([encoder(b) for b in torch.from_numpy(images).split(256)]).to(torch.float64)
+            targets = torch.from_numpy(positions).to(torch.float64)
+            fit.append((points[:-n_val], targets[:-n_val]))
+            held_out[world.name] = (points[-n_val:], targets[-n_val:])
+        module.train(was_training)
+        points, targets = (torch.cat(parts) for parts in zip(*fit, strict=True))
+        design = torch.cat([points, torch.ones(len(points), 1, dtype=points.dtype)], 1)
+        gram = design.T @ design + ridge * len(design) * torch.eye(design.shape[1], dtype=design.dtype)
+        weights = torch.linalg.solve(gram, design.T @ targets)
+        names = objects(module_worlds[0])
+        errors = {}
+        for world_name, (p, y) in held_out.items():
+            predicted = torch.cat([p, torch.ones(len(p), 1, dtype=p.dtype)], 1) @ weights
+            errors[world_name] = dict(zip(names, _point_errors(predicted, y).tolist(), strict=True))
+        y = torch.cat([y for _, y in held_out.values()])
+        baseline = float(_point_errors(targets.mean(0).expand_as(y), y).mean())
+        report[f"{factor}/{name}"] = {
+            "scenes": scenes * len(module_worlds),
+            "worlds": errors,
+            "baseline_error": baseline,
+        }
     return report
 
 
