@@ -1,6 +1,7 @@
 """GPS over several worlds: training lowers every world's cost, errors name their place, state resumes."""
 
 import copy
+import dataclasses
 import io
 
 import pytest
@@ -87,6 +88,22 @@ def test_a_pixel_bank_trains_its_conv_task_modules_from_rendered_samples(monkeyp
     for part, one_pass in zip(chunked, whole.values(), strict=True):
         assert part.shape == one_pass.shape == (4, 2, 8)
         torch.testing.assert_close(part["loc"], one_pass["loc"])
+
+
+def test_convolutions_kept_as_they_start_with_train_convolutions_false():
+    """``train_convolutions=False``: the S-step leaves every convolution as it was (pretraining's
+    weights) and still trains the layers after the feature points and the robot module."""
+    bank = ModuleBank.build(["three_link"], ["reach_red", "reach_black"], pixels=True, seed=0)
+    worlds = [("three_link", "reach_red"), ("three_link", "reach_black")]
+    before = {k: v.clone() for k, v in bank.state_dict().items()}
+    config = small_config(horizon=8, samples_per_condition=2, sgd_steps=3, initial_sgd_steps=3)
+    trainer = GPSTrainer(bank, worlds, dataclasses.replace(config, train_convolutions=False), pixels=True)
+    trainer.step()
+    changed = {k for k, v in bank.state_dict().items() if not torch.equal(v, before[k])}
+    assert not {k for k in changed if ".pixels.convs." in k}
+    assert {k for k in changed if k.startswith("factor_modules.task.reach_red.") and ".pixels." not in k}
+    assert {k for k in changed if k.startswith("factor_modules.robot.three_link.")}
+    assert all(p.requires_grad != (".pixels." in n) for n, p in bank.named_parameters())
 
 
 def test_seeded_runs_are_reproducible():

@@ -14,6 +14,7 @@ One :meth:`GPSTrainer.step` is one GPS iteration:
 
 Examples:
     >>> from modnet.bank import ModuleBank
+from modnet.modules import PixelEncoder
     >>> from modnet.gps.trainer import GPSConfig, GPSTrainer
     >>> worlds = [("three_link", "reach_red"), ("four_link", "reach_black")]
     >>> bank = ModuleBank.build(["three_link", "four_link"], ["reach_red", "reach_black"])
@@ -53,6 +54,7 @@ from modnet.gps.loss import PolicyRegressionLoss
 from modnet.gps.lqr import LQRConfig, adapt_step_mult, kl_divergence, laplace_cost, lqr_forward
 from modnet.gps.lqr import solve_kl_constrained_lqr as c_step
 from modnet.gps.sampling import POLICY_KEYS, STATE_KEYS, Samples, WorldSampler, state_of
+from modnet.modules import PixelEncoder
 from modnet.specs import TORQUE_LIMIT
 from modnet.worlds import CONDITION_SETS, NUM_FIXED_CONDITIONS
 
@@ -109,6 +111,11 @@ class GPSConfig:
     #: controllers from their linearisation (instead of fitting the policy to hold-position ones),
     #: taken in that iteration on their actions as applied, clipped to the torque limits
     init_from_policy: bool = False
+    #: False: the convolutions of a vision bank keep the weights they start with (what pose
+    #: pretraining taught them), and the S-step trains the layers after the feature points only.
+    #: True (the paper's visuomotor training) trains them end to end, and on a few training
+    #: scenes they can unlearn an object elsewhere (RESULTS, section 1; ``benchmarks/probe_vision.py``)
+    train_convolutions: bool = True
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -210,7 +217,11 @@ class GPSTrainer:
         self.timings: dict[str, float] = defaultdict(float)
         self.states = {state.name: state for state in map(lambda w: self._init_world(*w), worlds)}
         self.loss = PolicyRegressionLoss(bank)
-        self.optimizer = torch.optim.Adam(bank.parameters(), lr=config.lr, weight_decay=config.weight_decay)
+        if not config.train_convolutions:
+            for encoder in (m for m in bank.modules() if isinstance(m, PixelEncoder)):
+                encoder.requires_grad_(False)
+        trained = [p for p in bank.parameters() if p.requires_grad]
+        self.optimizer = torch.optim.Adam(trained, lr=config.lr, weight_decay=config.weight_decay)
         self.history: list[dict[str, dict[str, float]]] = []
 
     # --- set-up -------------------------------------------------------------------------
