@@ -14,7 +14,6 @@ One :meth:`GPSTrainer.step` is one GPS iteration:
 
 Examples:
     >>> from modnet.bank import ModuleBank
-from modnet.modules import PixelEncoder
     >>> from modnet.gps.trainer import GPSConfig, GPSTrainer
     >>> worlds = [("three_link", "reach_red"), ("four_link", "reach_black")]
     >>> bank = ModuleBank.build(["three_link", "four_link"], ["reach_red", "reach_black"])
