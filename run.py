@@ -59,6 +59,7 @@ NEWER_OPTIONS = {
     "gps.dynamics_ridge": GPSConfig.dynamics_ridge,
     "gps.noise_smoothing": 0.0,
     "gps.dynamics_prior_per_condition": False,
+    "gps.train_convolutions": True,
 }
 
 

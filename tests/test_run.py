@@ -349,8 +349,9 @@ def test_object_contact_names_the_valid_worlds_and_refuses_a_task_without_an_obj
 
 
 def test_options_at_their_do_nothing_defaults_stay_out_of_the_checkpoint_identity():
-    """A run saved before pretraining, the softmax temperature, the dynamics ridge and noise
-    smoothing existed still resumes; changing any of them makes a different run."""
+    """A run saved before pretraining, the softmax temperature, the dynamics ridge, noise
+    smoothing and frozen convolutions existed still resumes; changing any of them makes a
+    different run."""
     run_py = load_run_module()
     base = composed_run("universe=color_reach", "seed=3")
     universe, split = validate(base)
@@ -361,9 +362,12 @@ def test_options_at_their_do_nothing_defaults_stay_out_of_the_checkpoint_identit
     )
     assert not any(k.startswith("pretrain.") or k == "bank.softmax_temperature" for k in plain)
     assert "gps.dynamics_ridge" not in plain and "gps.noise_smoothing" not in plain
-    ridged = composed_run("universe=color_reach", "gps.dynamics_ridge=1e-3", "gps.noise_smoothing=2")
+    assert "gps.train_convolutions" not in plain
+    options = ["gps.dynamics_ridge=1e-3", "gps.noise_smoothing=2", "gps.train_convolutions=false"]
+    ridged = composed_run("universe=color_reach", *options)
     ridged = run_py.run_identity(ridged, universe, split)
     assert ridged["gps.dynamics_ridge"] == 1e-3 and ridged["gps.noise_smoothing"] == 2.0
+    assert ridged["gps.train_convolutions"] is False
     pretrained = run_py.run_identity(base, universe, split)
     assert pretrained["pretrain.images"] == 4000 and pretrained["bank.softmax_temperature"] == 0.05
     assert pretrained["pretrain.seed"] == 3  # follows the run seed
