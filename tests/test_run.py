@@ -421,3 +421,19 @@ def test_an_image_run_pretrains_once_reports_it_and_a_resumed_run_does_not_pretr
     # its wall time still counts the pretraining, as the first attempt measured it per module
     spent = round(sum(f["seconds"] for f in results["pretrain"].values()), 1)
     assert resumed_results["seconds"]["pretrain"] == results["seconds"]["pretrain"] == spent
+
+    # the linear probe of its vision modules, after GPS and as its own pretraining left them
+    probe = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "probe_vision.py"), str(tmp_path), "--scenes", "10"]
+        + ["--before-gps"],
+        capture_output=True,
+        text=True,
+    )
+    assert probe.returncode == 0, probe.stderr[-3000:]
+    figures = json.loads(probe.stdout.strip().splitlines()[-1])
+    assert figures["pretraining_repeated"] is True  # the rebuilt bank starts where the run did
+    for stage in ("after_gps", "before_gps"):
+        assert set(figures[stage]) == set(results["pretrain"])
+        worlds = figures[stage]["task/reach_black"]["worlds"]
+        assert "four_link/reach_black" in worlds  # the held-out world is probed too
+        assert list(worlds["four_link/reach_black"]) == ["red", "green", "yellow", "black"]
