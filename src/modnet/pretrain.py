@@ -236,13 +236,13 @@ def probe_vision(
             held_out[world.name] = (points[-n_val:], targets[-n_val:])
         module.train(was_training)
         points, targets = (torch.cat(parts) for parts in zip(*fit, strict=True))
-        design = torch.cat([points, torch.ones(len(points), 1, dtype=points.dtype)], 1)
+        design = _with_constant(points)
         gram = design.T @ design + ridge * len(design) * torch.eye(design.shape[1], dtype=design.dtype)
         weights = torch.linalg.solve(gram, design.T @ targets)
         names = objects(module_worlds[0])
         errors = {}
         for world_name, (p, y) in held_out.items():
-            predicted = torch.cat([p, torch.ones(len(p), 1, dtype=p.dtype)], 1) @ weights
+            predicted = _with_constant(p) @ weights
             errors[world_name] = dict(zip(names, _point_errors(predicted, y).tolist(), strict=True))
         y = torch.cat([y for _, y in held_out.values()])
         baseline = float(_point_errors(targets.mean(0).expand_as(y), y).mean())
@@ -252,6 +252,11 @@ def probe_vision(
             "baseline_error": baseline,
         }
     return report
+
+
+def _with_constant(x: torch.Tensor) -> torch.Tensor:
+    """``[n, k]`` -> ``[n, k + 1]``: a column of ones for a linear map's offset."""
+    return torch.cat([x, x.new_ones(len(x), 1)], 1)
 
 
 def _regress(
