@@ -42,10 +42,12 @@ def pretrained_bank(run_dir: Path) -> tuple[ModuleBank, bool]:
     bank = run.new_bank(universe)
     report = pretrain_vision(bank, split.training, run.pretrain_config())
     recorded = json.loads((run_dir / "pretrain.json").read_text())
-    repeated = {m: round(f["val_error"], 6) for m, f in report.items()} == {
-        m: round(f["val_error"], 6) for m, f in recorded.items()
-    }
-    return bank, repeated
+    return bank, validation_errors(report) == validation_errors(recorded)
+
+
+def validation_errors(report: dict) -> dict[str, float]:
+    """Each module's pretraining error, as ``pretrain_vision`` reports it (JSON keeps floats exact)."""
+    return {module: figures["val_error"] for module, figures in report.items()}
 
 
 def show(label: str, report: dict, holdout: str) -> dict:

@@ -13,6 +13,11 @@ from modnet.worlds import get_world
 SHARP = BankConfig(softmax_temperature=0.05)
 
 
+def red_pixels(images):
+    """Where the red block is drawn in uint8 ``[..., H, W, 3]`` images: ``[..., H, W]`` booleans."""
+    return (images[..., 0] > 200) & (images[..., 1] < 80) & (images[..., 2] < 80)
+
+
 def test_the_regression_targets_are_the_objects_not_the_end_effector():
     assert object_slots(get_world("three_link", "reach")) == [4, 5]  # the target
     colours = get_world("four_link", "reach_black")
@@ -28,7 +33,7 @@ def test_rendered_scenes_are_labelled_with_where_the_objects_are():
     again, same = render_scenes(world, 6, np.random.default_rng(0))
     np.testing.assert_array_equal(images, again)
     np.testing.assert_array_equal(positions, same)
-    red = (images[..., 0] > 200) & (images[..., 1] < 80) & (images[..., 2] < 80)
+    red = red_pixels(images)
     columns = np.array([np.nonzero(r)[1].mean() for r in red])
     # the camera looks straight down: image column grows with x
     assert np.corrcoef(columns, positions[:, 0])[0, 1] > 0.95
@@ -103,7 +108,7 @@ class RedCentroid(torch.nn.Module):
     """A stand-in encoder that finds the red block exactly as a person would: its pixels' centroid."""
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
-        red = (images[..., 0] > 200) & (images[..., 1] < 80) & (images[..., 2] < 80)
+        red = red_pixels(images)
         rows = torch.arange(images.shape[-3], dtype=torch.float32)[:, None].expand(red.shape[-2:])
         cols = torch.arange(images.shape[-2], dtype=torch.float32)[None, :].expand(red.shape[-2:])
         count = red.sum((-2, -1)).clamp_min(1)

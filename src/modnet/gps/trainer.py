@@ -111,7 +111,8 @@ class GPSConfig:
     #: taken in that iteration on their actions as applied, clipped to the torque limits
     init_from_policy: bool = False
     #: False: the convolutions of a vision bank keep the weights they start with (what pose
-    #: pretraining taught them), and the S-step trains the layers after the feature points only.
+    #: pretraining taught them), and the S-step trains the layers after the feature points only
+    #: (the trainer sets ``requires_grad=False`` on the bank's encoders, which stays so after it).
     #: True (the paper's visuomotor training) trains them end to end, and on a few training
     #: scenes they can unlearn an object elsewhere (RESULTS, section 1; ``benchmarks/probe_vision.py``)
     train_convolutions: bool = True
