@@ -71,6 +71,8 @@ def main() -> None:
         "--before-gps", action="store_true", help="also probe the modules as pretraining left them"
     )
     args = parser.parse_args()
+    if args.scenes < 2:
+        parser.error(f"--scenes must be at least 2 per world (some to fit, some to test), got {args.scenes}")
     needed = ["results.json", "bank/manifest.json"] + ([".hydra/config.yaml"] if args.before_gps else [])
     missing = [name for name in needed if not (args.run_dir / name).exists()]
     if missing:

@@ -423,9 +423,13 @@ def test_an_image_run_pretrains_once_reports_it_and_a_resumed_run_does_not_pretr
     assert resumed_results["seconds"]["pretrain"] == results["seconds"]["pretrain"] == spent
 
     # the linear probe of its vision modules, after GPS and as its own pretraining left them
+    script = str(ROOT / "benchmarks" / "probe_vision.py")
+    few = subprocess.run(
+        [sys.executable, script, str(tmp_path), "--scenes", "1"], capture_output=True, text=True
+    )
+    assert few.returncode == 2 and "--scenes must be at least 2" in few.stderr, few.stderr
     probe = subprocess.run(
-        [sys.executable, str(ROOT / "benchmarks" / "probe_vision.py"), str(tmp_path), "--scenes", "10"]
-        + ["--before-gps"],
+        [sys.executable, script, str(tmp_path), "--scenes", "10", "--before-gps"],
         capture_output=True,
         text=True,
     )
