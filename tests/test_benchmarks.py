@@ -14,6 +14,7 @@ from tensordict import TensorDict
 
 from modnet.bank import ModuleBank
 from modnet.evaluate import evaluation_env, rollout
+from modnet.gps.trainer import PHASES
 from modnet.worlds import get_world
 
 BENCHMARKS = Path(__file__).resolve().parent.parent / "benchmarks"
@@ -36,6 +37,28 @@ def test_gps_on_one_world_brings_the_policy_within_the_success_distance():
 def test_lqr_benchmark_reports_a_ratio_against_numpy():
     figures = last_json("lqr.py", "--repeats", "3")
     assert figures["max_abs_diff_K_k_chol"] < 1e-9 and figures["speedup_numpy_over_batched"] > 0
+
+
+def test_gps_iteration_benchmark_times_the_grid_a_run_trains_from_images():
+    """The run's own grid and budget (here color_reach, shrunk): every phase, the policy's
+    forward passes over the samples among them, with shares of the iteration that add up."""
+    overrides = ["universe=color_reach", "gps.num_conditions=4", "gps.samples_per_condition=1"]
+    overrides += ["gps.sgd_steps=4", "gps.initial_sgd_steps=4", "gps.horizon=10"]
+    figures = last_json("gps_iteration.py", "--iterations", "2", *overrides)
+    assert figures["pixels"] is True and figures["worlds"] == 11 and figures["sgd_steps"] == 4
+    assert figures["samples_per_iteration"] == 11 * 4 * 1
+    assert list(figures["share"]) == list(PHASES)
+    assert all(v > 0 for v in figures["share"].values()), figures
+    assert -0.01 <= figures["unaccounted_share"] < 0.5, figures
+    assert 0 < figures["sampling_vs_raw_mj_step"] < 1  # rendering and TorchRL cost more than mj_step
+
+
+def test_gps_iteration_benchmark_refuses_a_single_iteration():
+    done = subprocess.run(
+        [sys.executable, "gps_iteration.py", "--iterations", "1", "universe=tiny"],
+        capture_output=True, text=True, cwd=BENCHMARKS,
+    )
+    assert done.returncode != 0 and "--iterations must be at least 2" in done.stderr
 
 
 def test_pretrain_benchmark_reports_every_vision_module_and_a_ratio_against_mj_step():

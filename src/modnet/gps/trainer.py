@@ -57,7 +57,10 @@ from modnet.modules import PixelEncoder
 from modnet.specs import TORQUE_LIMIT
 from modnet.worlds import CONDITION_SETS, NUM_FIXED_CONDITIONS
 
-PHASES = ("sampling", "cost", "dynamics", "lqr", "s_step")
+#: where an iteration's time goes (``GPSTrainer.timings``): sampling the worlds, expanding the
+#: cost, fitting dynamics and policy linearisations, the LQR, the policy's forward passes over
+#: the samples (the most costly part from images) and the S-step's SGD
+PHASES = ("sampling", "cost", "dynamics", "lqr", "policy", "s_step")
 
 
 #: images per world in one no-grad pass of a vision bank over an iteration's samples
@@ -381,9 +384,10 @@ class GPSTrainer:
         it does in the world.  Afterwards the network imitates the controllers, as in training.
         """
         as_applied = self.iteration == 0 and self.config.init_from_policy
-        self.bank.eval()
-        out = self._forward_samples(states)
-        self.bank.train()
+        with self._timed("policy"):
+            self.bank.eval()
+            out = self._forward_samples(states)
+            self.bank.train()
         for state, result in zip(states, out, strict=True):
             mean = result["loc"].to(torch.float64)
             check_finite("policy action", mean, world=state.name, iteration=self.iteration)
