@@ -14,7 +14,7 @@ from tensordict import TensorDict
 
 from modnet.bank import ModuleBank
 from modnet.evaluate import evaluation_env, rollout
-from modnet.gps.trainer import PHASES
+from modnet.gps.trainer import PHASES, PIXEL_ROWS_PER_PASS
 from modnet.worlds import get_world
 
 BENCHMARKS = Path(__file__).resolve().parent.parent / "benchmarks"
@@ -51,6 +51,13 @@ def test_gps_iteration_benchmark_times_the_grid_a_run_trains_from_images():
     assert all(v > 0 for v in figures["share"].values()), figures
     assert -0.01 <= figures["unaccounted_share"] < 0.5, figures
     assert 0 < figures["sampling_vs_raw_mj_step"] < 1  # rendering and TorchRL cost more than mj_step
+
+
+def test_policy_passes_benchmark_gives_the_trainers_outputs_at_every_pass_size():
+    figures = last_json("policy_passes.py", "--rows", "16", "--images", "40", "--repeats", "1")
+    assert figures["trainer_rows_per_pass"] == PIXEL_ROWS_PER_PASS
+    assert set(figures["same_outputs"]) == {"16", str(PIXEL_ROWS_PER_PASS), "512"}
+    assert all(figures["same_outputs"].values()) and figures["reference_vs_trainer"] > 0
 
 
 def test_gps_iteration_benchmark_refuses_a_single_iteration():

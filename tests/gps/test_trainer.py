@@ -78,8 +78,9 @@ def test_a_pixel_bank_trains_its_conv_task_modules_from_rendered_samples(monkeyp
     assert pixels.dtype == torch.uint8 and pixels.shape[-3:] == (64, 80, 3) and pixels.float().std() > 10
     assert not any(torch.equal(p, b) for p, b in zip(conv.parameters(), before, strict=True))
 
-    # the policy at every sample, a condition at a time (bounded memory), is the one-pass result
-    monkeypatch.setattr(trainer_module, "PIXEL_ROWS_PER_PASS", 1)
+    # the policy at every sample, a few rows at a time (bounded memory; 5 leaves a ragged last
+    # pass), is the one-pass result
+    monkeypatch.setattr(trainer_module, "PIXEL_ROWS_PER_PASS", 5)
     states = list(trainer.states.values())
     trainer.bank.eval()
     with torch.no_grad():
@@ -88,6 +89,26 @@ def test_a_pixel_bank_trains_its_conv_task_modules_from_rendered_samples(monkeyp
     for part, one_pass in zip(chunked, whole.values(), strict=True):
         assert part.shape == one_pass.shape == (4, 2, 8)
         torch.testing.assert_close(part["loc"], one_pass["loc"])
+
+
+def test_the_policy_at_the_samples_of_worlds_with_different_horizons(monkeypatch):
+    """From images, reach (50 steps) beside push (100): the passes run out of reach's rows
+    first, and every world still gets its own outputs in its samples' shape ``[M, N, T]``."""
+    worlds = [("three_link", "reach"), ("three_link", "push")]
+    bank = ModuleBank.build(["three_link"], ["reach", "push"], pixels=True, seed=0, dropout=0.0)
+    config = small_config(horizon=None, samples_per_condition=1, sgd_steps=1, initial_sgd_steps=1)
+    trainer = GPSTrainer(bank, worlds, config, pixels=True)
+    states = list(trainer.states.values())
+    for state in states:
+        trainer._sample_and_fit(state)
+    monkeypatch.setattr(trainer_module, "PIXEL_ROWS_PER_PASS", 64)
+    with torch.no_grad():
+        chunked = trainer._forward_samples(states)
+        for state, part in zip(states, chunked, strict=True):
+            alone = bank.forward_worlds({state.name: state.samples.obs})[bank.world(state.name)]
+            assert part.shape == state.samples.obs.shape == alone.shape
+            torch.testing.assert_close(part["loc"], alone["loc"])
+    assert [s.samples.obs.shape[-1] for s in states] == [50, 100]
 
 
 def test_convolutions_kept_as_they_start_with_train_convolutions_false():

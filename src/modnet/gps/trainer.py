@@ -63,8 +63,10 @@ from modnet.worlds import CONDITION_SETS, NUM_FIXED_CONDITIONS
 PHASES = ("sampling", "cost", "dynamics", "lqr", "policy", "s_step")
 
 
-#: images per world in one no-grad pass of a vision bank over an iteration's samples
-PIXEL_ROWS_PER_PASS = 512
+#: images per world in one no-grad pass of a vision bank over an iteration's samples: few
+#: enough for the convolutions' activations to stay in cache, which makes a pass 2 to 3 times
+#: faster per image than at 512 rows, with the same outputs (``benchmarks/policy_passes.py``)
+PIXEL_ROWS_PER_PASS = 32
 
 
 @dataclass
@@ -419,17 +421,21 @@ class GPSTrainer:
 
     def _forward_samples(self, states: Sequence[WorldState]) -> list[TensorDictBase]:
         """The bank's outputs at every world's samples ``[M, N, T]``, in one
-        :meth:`~modnet.bank.ModuleBank.forward_worlds` pass per few conditions when the bank
-        reads images (their activations for a whole iteration's samples would take gigabytes)."""
-        obs = {s.name: s.samples.obs for s in states}
-        M = states[0].samples.obs.shape[0]  # one GPSConfig: every world has M conditions
-        rows = max(o.shape[1:].numel() for o in obs.values())  # N x T of the longest horizon
-        chunk = max(1, PIXEL_ROWS_PER_PASS // rows) if self.pixels else M
-        passes = [
-            list(self.bank.forward_worlds({name: o[i : i + chunk] for name, o in obs.items()}).values())
-            for i in range(0, M, chunk)
+        :meth:`~modnet.bank.ModuleBank.forward_worlds` pass, or, when the bank reads images,
+        one pass per ``PIXEL_ROWS_PER_PASS`` rows of every world (a whole iteration's
+        activations would take gigabytes, and large passes are slower per image)."""
+        flat = {self.bank.world(s.name): s.samples.obs.reshape(-1) for s in states}
+        longest = max(o.shape[0] for o in flat.values())  # horizons may differ between tasks
+        step = PIXEL_ROWS_PER_PASS if self.pixels else longest
+        parts: dict[tuple, list[TensorDictBase]] = {world: [] for world in flat}
+        for i in range(0, longest, step):
+            out = self.bank.forward_worlds({w: o[i : i + step] for w, o in flat.items() if i < o.shape[0]})
+            for world, td in out.items():
+                parts[world].append(td)
+        return [
+            torch.cat(parts[world]).reshape(s.samples.obs.shape)
+            for world, s in zip(flat, states, strict=True)
         ]
-        return [torch.cat(parts) for parts in zip(*passes, strict=True)]
 
     def _adapt_step(self, state: WorldState) -> None:
         """Step-size rule from the improvement predicted by the last C-step vs the one sampled."""
