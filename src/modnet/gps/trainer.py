@@ -59,7 +59,7 @@ from modnet.worlds import CONDITION_SETS, NUM_FIXED_CONDITIONS
 
 #: where an iteration's time goes (``GPSTrainer.timings``): sampling the worlds, expanding the
 #: cost, fitting dynamics and policy linearisations, the LQR, the policy's forward passes over
-#: the samples (the most costly part from images) and the S-step's SGD
+#: the samples and the S-step's SGD
 PHASES = ("sampling", "cost", "dynamics", "lqr", "policy", "s_step")
 
 
