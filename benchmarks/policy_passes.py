@@ -4,10 +4,11 @@ Between S-steps, GPS evaluates the composed networks of every training world at 
 that iteration's samples (BADMM: once per round, four times an iteration), without
 gradients.  From 64x80 images it took about as long as the S-step's SGD
 (`benchmarks/gps_iteration.py universe=color_reach`).  ``GPSTrainer`` runs it in passes of
-``PIXEL_ROWS_PER_PASS`` rows per world; this times passes of several sizes on the 11 worlds
-of ``color_reach`` (random images through the untrained vision bank), in alternation so a
-shared machine's load hits all alike, and checks that every size gives the same outputs as
-the trainer's.  Ratios are against 512 rows per pass, the trainer's size before.
+``PIXEL_ROWS_PER_PASS`` rows per world (``ModuleBank.forward_worlds(..., rows_per_pass=)``).
+This times passes of several sizes on the 11 worlds of ``color_reach`` (random images
+through the untrained vision bank), in alternation so a shared machine's load hits all
+alike, and checks that every size gives the same outputs as the trainer's.  Ratios are
+against 512 rows per pass, the trainer's size before.
 
     python benchmarks/policy_passes.py [--rows 16 64 128] [--images 1024] [--repeats 5]
 
@@ -33,10 +34,9 @@ REFERENCE_ROWS = 512
 
 def passes(bank: ModuleBank, obs: dict, rows: int) -> torch.Tensor:
     """Every world's mean action at every row, ``rows`` rows per world in each pass."""
-    n = next(iter(obs.values())).shape[0]
     with torch.no_grad():
-        parts = [bank.forward_worlds({w: o[i : i + rows] for w, o in obs.items()}) for i in range(0, n, rows)]
-    return torch.cat([torch.cat([part[w]["loc"] for part in parts]) for w in parts[0]], dim=-1)
+        out = bank.forward_worlds(obs, rows_per_pass=rows)
+    return torch.cat([td["loc"] for td in out.values()], dim=-1)
 
 
 def main() -> None:

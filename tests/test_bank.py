@@ -272,6 +272,22 @@ def test_forward_worlds_equals_the_per_world_loop_values_and_gradients():
         torch.testing.assert_close(grads[k], p.grad, msg=k)
 
 
+def test_forward_worlds_in_passes_gives_the_one_pass_outputs_in_each_batchs_shape():
+    """``rows_per_pass``: batches of different sizes and shapes, cut into passes of 5 rows per
+    world (the smaller batch runs out first), come back as the one-pass result; 0 is refused."""
+    bank = ModuleBank.build(ROBOTS, TASKS, dropout=0.0)
+    a, b = ("three_link", "reach_red"), ("four_link", "reach_red")
+    batches = {a: observations(a, batch=(3, 4), seed=1), b: observations(b, batch=(2, 3, 4), seed=2)}
+    whole = bank.forward_worlds(batches)
+    passes = bank.forward_worlds(batches, rows_per_pass=5)
+    for world, td in batches.items():
+        assert passes[world].batch_size == td.batch_size
+        for key in ("loc", "scale", ("interface", "task")):
+            torch.testing.assert_close(passes[world][key], whole[world][key])
+    with pytest.raises(ValueError, match="rows_per_pass must be at least 1"):
+        bank.forward_worlds(batches, rows_per_pass=0)
+
+
 def test_forward_worlds_runs_each_module_once():
     bank = ModuleBank.build(ROBOTS, TASKS, dropout=0.0)
     calls = []

@@ -453,7 +453,9 @@ class ModuleBank(nn.Module):
         )
 
     # --- many worlds at once ------------------------------------------------------------------------
-    def forward_worlds(self, batches: Mapping[World | str, TensorDictBase]) -> dict[World, TensorDictBase]:
+    def forward_worlds(
+        self, batches: Mapping[World | str, TensorDictBase], rows_per_pass: int | None = None
+    ) -> dict[World, TensorDictBase]:
         """Evaluate the composed networks of many worlds, each module once.
 
         ``batches`` maps worlds to TensorDicts of their observations (any batch shape).
@@ -462,6 +464,11 @@ class ModuleBank(nn.Module):
         TensorDict of the batch's shape holding every module output (interfaces,
         ``"loc"``, ``"scale"``), with autograd intact: the same numbers as running each
         world's :meth:`compose`\\ d network in turn.
+
+        With ``rows_per_pass`` the rows (every world's batch flattened) go through in passes
+        of at most that many rows per world, the outputs put back in each batch's shape.
+        From images this bounds the memory of evaluating many samples, and passes small
+        enough for the convolutions' activations to stay in cache are faster per image.
 
         Examples:
             >>> import torch
@@ -477,6 +484,8 @@ class ModuleBank(nn.Module):
             torch.Size([5, 4])
         """
         worlds = {self._as_world(w): td for w, td in batches.items()}
+        if rows_per_pass is not None:
+            return self._forward_in_passes(worlds, rows_per_pass)
         chains = {w: list(self.parts(w).values()) for w in worlds}
         rows = {w: td.batch_size.numel() for w, td in worlds.items()}
         made: dict[World, dict[NestedKey, torch.Tensor]] = {w: {} for w in worlds}
@@ -506,6 +515,18 @@ class ModuleBank(nn.Module):
                 result.set(key, value.reshape(*td.batch_size, *value.shape[1:]))
             out[world] = result
         return out
+
+    def _forward_in_passes(self, worlds: dict, rows: int) -> dict[World, TensorDictBase]:
+        if rows < 1:
+            raise ValueError(f"rows_per_pass must be at least 1, got {rows}")
+        flat = {w: td.reshape(-1) for w, td in worlds.items()}
+        longest = max(td.shape[0] for td in flat.values())  # batches may differ (task horizons)
+        parts: dict[World, list[TensorDictBase]] = {w: [] for w in flat}
+        for i in range(0, longest, rows):
+            out = self.forward_worlds({w: td[i : i + rows] for w, td in flat.items() if i < td.shape[0]})
+            for world, td in out.items():
+                parts[world].append(td)
+        return {w: torch.cat(parts[w]).reshape(worlds[w].batch_size) for w in worlds}
 
     forward = forward_worlds
 

@@ -420,22 +420,12 @@ class GPSTrainer:
         state.diagnostics["action_gap"] = float(gap.norm(dim=-1).mean())
 
     def _forward_samples(self, states: Sequence[WorldState]) -> list[TensorDictBase]:
-        """The bank's outputs at every world's samples ``[M, N, T]``, in one
-        :meth:`~modnet.bank.ModuleBank.forward_worlds` pass, or, when the bank reads images,
-        one pass per ``PIXEL_ROWS_PER_PASS`` rows of every world (a whole iteration's
+        """The bank's outputs at every world's samples ``[M, N, T]``: one pass from states;
+        from images ``PIXEL_ROWS_PER_PASS`` rows per world at a time (a whole iteration's
         activations would take gigabytes, and large passes are slower per image)."""
-        flat = {self.bank.world(s.name): s.samples.obs.reshape(-1) for s in states}
-        longest = max(o.shape[0] for o in flat.values())  # horizons may differ between tasks
-        step = PIXEL_ROWS_PER_PASS if self.pixels else longest
-        parts: dict[tuple, list[TensorDictBase]] = {world: [] for world in flat}
-        for i in range(0, longest, step):
-            out = self.bank.forward_worlds({w: o[i : i + step] for w, o in flat.items() if i < o.shape[0]})
-            for world, td in out.items():
-                parts[world].append(td)
-        return [
-            torch.cat(parts[world]).reshape(s.samples.obs.shape)
-            for world, s in zip(flat, states, strict=True)
-        ]
+        rows = PIXEL_ROWS_PER_PASS if self.pixels else None
+        out = self.bank.forward_worlds({s.name: s.samples.obs for s in states}, rows_per_pass=rows)
+        return [out[self.bank.world(s.name)] for s in states]
 
     def _adapt_step(self, state: WorldState) -> None:
         """Step-size rule from the improvement predicted by the last C-step vs the one sampled."""
