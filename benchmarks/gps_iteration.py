@@ -26,11 +26,13 @@ import mujoco
 import numpy as np
 import torch
 from hydra import compose, initialize_config_dir
+from hydra.errors import HydraException
 from omegaconf import OmegaConf
 
-from modnet.config import RunConfig, register_configs, validate
+from modnet.config import ConfigError, RunConfig, register_configs, validate
 from modnet.gps.trainer import PHASES, GPSTrainer
 from modnet.specs import CONTROL_SUBSTEPS
+from modnet.universes import UniverseError
 
 CONF = Path(__file__).resolve().parents[1] / "conf"
 
@@ -60,9 +62,12 @@ def main() -> None:
         parser.error("--iterations must be at least 2: the first iteration is not reported")
     torch.set_num_threads(1)  # as run.py
     register_configs()
-    with initialize_config_dir(config_dir=str(CONF), version_base=None):
-        run: RunConfig = OmegaConf.to_object(compose("config", overrides=args.overrides))
-    universe, split = validate(run)
+    try:  # a bad override ends in one line, before any work
+        with initialize_config_dir(config_dir=str(CONF), version_base=None):
+            run: RunConfig = OmegaConf.to_object(compose("config", overrides=args.overrides))
+        universe, split = validate(run)
+    except (HydraException, ConfigError, UniverseError) as err:
+        parser.error(" ".join(str(err).split()))
     config = run.gps_config()
     trainer = GPSTrainer(run.new_bank(universe), split.training, config, pixels=universe.pixels)
     per_iteration = []

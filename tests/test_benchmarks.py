@@ -60,12 +60,18 @@ def test_policy_passes_benchmark_gives_the_trainers_outputs_at_every_pass_size()
     assert all(figures["same_outputs"].values()) and figures["reference_vs_trainer"] > 0
 
 
-def test_gps_iteration_benchmark_refuses_a_single_iteration():
-    done = subprocess.run(
-        [sys.executable, "gps_iteration.py", "--iterations", "1", "universe=tiny"],
-        capture_output=True, text=True, cwd=BENCHMARKS,
-    )
-    assert done.returncode != 0 and "--iterations must be at least 2" in done.stderr
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--iterations", "1", "universe=tiny"], "--iterations must be at least 2"),
+        (["universe=nope"], "Available options in 'universe': color_reach color_reach_state"),
+        (["holdout=four_link/nope"], "task 'nope' not in its grid"),
+    ],
+)
+def test_gps_iteration_benchmark_refuses_bad_input_in_one_line(args, message):
+    command = [sys.executable, "gps_iteration.py", *args]
+    done = subprocess.run(command, capture_output=True, text=True, cwd=BENCHMARKS)
+    assert done.returncode != 0 and message in done.stderr and "Traceback" not in done.stderr
 
 
 def test_pretrain_benchmark_reports_every_vision_module_and_a_ratio_against_mj_step():

@@ -516,7 +516,9 @@ class ModuleBank(nn.Module):
             out[world] = result
         return out
 
-    def _forward_in_passes(self, worlds: dict, rows: int) -> dict[World, TensorDictBase]:
+    def _forward_in_passes(
+        self, worlds: dict[World, TensorDictBase], rows: int
+    ) -> dict[World, TensorDictBase]:
         if rows < 1:
             raise ValueError(f"rows_per_pass must be at least 1, got {rows}")
         flat = {w: td.reshape(-1) for w, td in worlds.items()}
