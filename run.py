@@ -60,6 +60,7 @@ NEWER_OPTIONS = {
     "gps.noise_smoothing": 0.0,
     "gps.dynamics_prior_per_condition": False,
     "gps.train_convolutions": True,
+    "gps.clip_targets": False,
 }
 
 

@@ -127,6 +127,25 @@ def test_convolutions_kept_as_they_start_with_train_convolutions_false():
     assert all(p.requires_grad != (".pixels." in n) for n, p in bank.named_parameters())
 
 
+def test_clip_targets_regresses_onto_the_torques_the_arms_apply():
+    """``clip_targets``: the S-step's targets are the controllers' actions clipped to the torque
+    limits (stiff first controllers ask for more), and training keeps to them."""
+    trainer = trainer_for(worlds=GRID[:1], init_kp=20.0, clip_targets=True, sgd_steps=5, initial_sgd_steps=5)
+    state = trainer.states["three_link/reach_red"]
+    trainer._sample_and_fit(state)
+    asked = state.controller.gains.mean_actions(state.samples.X)
+    assert asked.abs().max() > TORQUE_LIMIT and (asked.abs() < TORQUE_LIMIT).any()
+    targets = trainer._controller_targets(state)["target_action"]
+    expected = asked.clamp(-TORQUE_LIMIT, TORQUE_LIMIT).to(torch.float32).reshape(-1, asked.shape[-1])
+    torch.testing.assert_close(targets, expected, rtol=0, atol=0)
+    unclipped = trainer_for(worlds=GRID[:1], init_kp=20.0)
+    unclipped._sample_and_fit(unclipped.states["three_link/reach_red"])
+    raw = unclipped._controller_targets(unclipped.states["three_link/reach_red"])["target_action"]
+    assert raw.abs().max() > TORQUE_LIMIT
+    trainer.step()  # BADMM's targets as well
+    assert state.regression_data[:]["target_action"].abs().max() <= TORQUE_LIMIT
+
+
 def test_seeded_runs_are_reproducible():
     a = trainer_for(worlds=GRID[:2]).step()
     b = trainer_for(worlds=GRID[:2]).step()

@@ -121,6 +121,11 @@ class GPSConfig:
     #: True (the paper's visuomotor training) trains them end to end, and on a few training
     #: scenes they can unlearn an object elsewhere (RESULTS, section 1; ``benchmarks/probe_vision.py``)
     train_convolutions: bool = True
+    #: regress the network onto the controllers' actions clipped to the torque limits the arms
+    #: apply, instead of onto their unclipped means: about a quarter of the reaching
+    #: controllers' mean torques ask for more than the limit, where any action beyond it acts
+    #: alike (RESULTS, "a stronger pull, a longer S-step")
+    clip_targets: bool = False
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -528,6 +533,8 @@ class GPSTrainer:
         median = weights[weights > 1e-2].median()
         weights = weights.clamp_max(2 * median) / median  # ... at most twice the robust median
         data = state.samples.obs.select(*POLICY_KEYS, strict=False)  # a new TD, shared leaves
+        if self.config.clip_targets:
+            target = target.clamp(-TORQUE_LIMIT, TORQUE_LIMIT)
         data["target_action"] = target.to(torch.float32)
         data["precision"] = precision.to(torch.float32)
         data["weight"] = weights.to(torch.float32)
