@@ -254,3 +254,18 @@ def test_reachable_clips_knots_to_the_motors_limits():
     torques = load_benchmark("reachable").interpolate(np.array([[0.0, -9.0], [4.0, 9.0]]), horizon=5)
     np.testing.assert_allclose(torques[:, 0], [0.0, 1.0, 2.0, 2.0, 2.0])
     np.testing.assert_allclose(torques[:, 1], [-2.0, -2.0, 0.0, 2.0, 2.0])
+
+
+def test_action_gap_splits_the_gap_by_part_of_the_episode_and_at_the_torque_limits():
+    action_gap = load_benchmark("action_gap")
+    asked = torch.zeros(1, 1, 5, 2, dtype=torch.float64)
+    asked[..., 0] = torch.tensor([3.0, 0.5, 0.5, 0.5, 0.5])  # the first step asks beyond the limit
+    network = torch.zeros_like(asked)
+    figures = action_gap.gap_figures(asked, network, torch.tensor([[0.25]]))
+    assert figures["gap"] == pytest.approx((3.0 + 4 * 0.5) / 5)
+    assert figures["gap_clipped"] == pytest.approx((2.0 + 4 * 0.5) / 5)  # 3 acts as 2 does
+    assert figures["gap_by_part"] == {"first_fifth": 2.0, "to_half": 0.5, "second_half": 0.5}
+    assert figures["saturated"] == pytest.approx(1 / 10)  # one of ten torques
+    assert figures["controller_distance"] == 0.25
+    beyond = action_gap.gap_figures(asked, network + 2.5, torch.tensor([[0.25]]))
+    assert beyond["gap_by_part"]["first_fifth"] == pytest.approx(2.0)  # (2, 0) against (2, 2)

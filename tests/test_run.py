@@ -336,6 +336,22 @@ def test_score_bank_scores_every_world_and_agrees_with_the_zero_shot_table(tiny_
     assert figures["training_worlds"]["mean"] == pytest.approx(sum(training) / len(training), abs=1e-4)
 
 
+def test_action_gap_compares_every_training_worlds_controllers_with_the_network(tiny_run):
+    run_dir, done, _ = tiny_run
+    assert done.returncode == 0, done.stderr[-3000:]
+    script = str(ROOT / "benchmarks" / "action_gap.py")
+    gap = subprocess.run([sys.executable, script, str(run_dir)], capture_output=True, text=True)
+    assert gap.returncode == 0, gap.stderr[-3000:]
+    figures = json.loads(gap.stdout.splitlines()[-1])
+    results = json.loads((run_dir / "results.json").read_text())
+    assert list(figures["worlds"]) == results["training_worlds"] and figures["iteration"] == ITERATIONS
+    for world in figures["worlds"].values():
+        assert 0 < world["gap_clipped"] <= world["gap"] and 0 <= world["saturated"] <= 1
+        assert world["controller_distance"] > 0
+    empty = subprocess.run([sys.executable, script, str(run_dir / "bank")], capture_output=True, text=True)
+    assert empty.returncode == 2 and "not a run.py run directory: no .hydra/config.yaml" in empty.stderr
+
+
 def test_object_contact_names_the_valid_worlds_and_refuses_a_task_without_an_object(tiny_run):
     run_dir, done, _ = tiny_run
     assert done.returncode == 0, done.stderr[-3000:]
