@@ -286,6 +286,12 @@ def test_forward_worlds_in_passes_gives_the_one_pass_outputs_in_each_batchs_shap
             torch.testing.assert_close(passes[world][key], whole[world][key])
     with pytest.raises(ValueError, match="rows_per_pass must be at least 1"):
         bank.forward_worlds(batches, rows_per_pass=0)
+    empty = {a: observations(a, batch=(0, 4), seed=1), b: batches[b]}  # an empty batch comes back empty
+    out = bank.forward_worlds(empty, rows_per_pass=5)
+    assert out[a].batch_size == (0, 4) and out[a]["loc"].shape == (0, 4, 3)
+    torch.testing.assert_close(out[b]["loc"], whole[b]["loc"])
+    alone = bank.forward_worlds({a: empty[a]}, rows_per_pass=5)
+    assert alone[a]["loc"].shape == (0, 4, 3)
 
 
 def test_forward_worlds_runs_each_module_once():

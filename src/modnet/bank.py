@@ -521,11 +521,11 @@ class ModuleBank(nn.Module):
     ) -> dict[World, TensorDictBase]:
         if rows < 1:
             raise ValueError(f"rows_per_pass must be at least 1, got {rows}")
-        flat = {w: td.reshape(-1) for w, td in worlds.items()}
+        flat = {w: td.reshape(td.batch_size.numel()) for w, td in worlds.items()}  # -1 fails when empty
         longest = max(td.shape[0] for td in flat.values())  # batches may differ (task horizons)
         parts: dict[World, list[TensorDictBase]] = {w: [] for w in flat}
-        for i in range(0, longest, rows):
-            out = self.forward_worlds({w: td[i : i + rows] for w, td in flat.items() if i < td.shape[0]})
+        for i in range(0, max(longest, 1), rows):  # every world in the first pass, empty ones too
+            out = self.forward_worlds({w: td[i : i + rows] for w, td in flat.items() if i < td.shape[0] or i == 0})
             for world, td in out.items():
                 parts[world].append(td)
         return {w: torch.cat(parts[w]).reshape(worlds[w].batch_size) for w in worlds}
