@@ -525,7 +525,8 @@ class ModuleBank(nn.Module):
         longest = max(td.shape[0] for td in flat.values())  # batches may differ (task horizons)
         parts: dict[World, list[TensorDictBase]] = {w: [] for w in flat}
         for i in range(0, max(longest, 1), rows):  # every world in the first pass, empty ones too
-            out = self.forward_worlds({w: td[i : i + rows] for w, td in flat.items() if i < td.shape[0] or i == 0})
+            batch = {w: td[i : i + rows] for w, td in flat.items() if i < td.shape[0] or i == 0}
+            out = self.forward_worlds(batch)
             for world, td in out.items():
                 parts[world].append(td)
         return {w: torch.cat(parts[w]).reshape(worlds[w].batch_size) for w in worlds}
