@@ -122,9 +122,10 @@ class GPSConfig:
     #: scenes they can unlearn an object elsewhere (RESULTS, section 1; ``benchmarks/probe_vision.py``)
     train_convolutions: bool = True
     #: regress the network onto the controllers' actions clipped to the torque limits the arms
-    #: apply, instead of onto their unclipped means: about a quarter of the reaching
-    #: controllers' mean torques ask for more than the limit, where any action beyond it acts
-    #: alike (RESULTS, "a stronger pull, a longer S-step")
+    #: apply, instead of onto their unclipped means (the GPS code's): about a quarter of the
+    #: reaching controllers' mean torques ask for more than the limit, where any action beyond
+    #: it acts alike. Off by default; on reaching it brings the networks closer to the blocks
+    #: (RESULTS, "regressing onto the torques the arms apply")
     clip_targets: bool = False
     seed: int = 0
 
