@@ -26,11 +26,9 @@ import json
 from pathlib import Path
 
 import torch
-import yaml
-from omegaconf import OmegaConf
 
 from modnet.checkpoint import load_checkpoint
-from modnet.config import RunConfig, validate
+from modnet.config import saved_run, validate
 from modnet.evaluate import evaluating
 from modnet.gps.trainer import PIXEL_ROWS_PER_PASS, GPSTrainer
 from modnet.specs import TORQUE_LIMIT
@@ -41,8 +39,7 @@ PARTS = {"first_fifth": 0.2, "to_half": 0.5, "second_half": 1.0}
 
 def restored_trainer(run_dir: Path) -> GPSTrainer:
     """The trainer of the run in ``run_dir`` (its config), in the state its checkpoint holds."""
-    values = yaml.safe_load((run_dir / ".hydra" / "config.yaml").read_text())
-    run: RunConfig = OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(RunConfig), values))
+    run = saved_run(run_dir)
     universe, split = validate(run)
     trainer = GPSTrainer(run.new_bank(universe), split.training, run.gps_config(), pixels=universe.pixels)
     trainer.load_state_dict(load_checkpoint(run_dir / "checkpoint.pt").trainer)

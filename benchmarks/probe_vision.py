@@ -24,11 +24,9 @@ import time
 from pathlib import Path
 
 import torch
-import yaml
-from omegaconf import OmegaConf
 
 from modnet.bank import ModuleBank
-from modnet.config import RunConfig, validate
+from modnet.config import saved_run, validate
 from modnet.pretrain import pretrain_vision, probe_vision
 from modnet.universes import get_universe
 
@@ -36,8 +34,7 @@ from modnet.universes import get_universe
 def pretrained_bank(run_dir: Path) -> tuple[ModuleBank, bool]:
     """The bank the run in ``run_dir`` started GPS from (its config and seed, pretrained again),
     and whether the pretraining repeated the run's figures."""
-    values = yaml.safe_load((run_dir / ".hydra" / "config.yaml").read_text())
-    run: RunConfig = OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(RunConfig), values))
+    run = saved_run(run_dir)
     universe, split = validate(run)
     bank = run.new_bank(universe)
     report = pretrain_vision(bank, split.training, run.pretrain_config())

@@ -27,6 +27,7 @@ import dataclasses
 import typing
 from collections.abc import Mapping
 from dataclasses import MISSING, dataclass, field, fields, is_dataclass
+from pathlib import Path
 from typing import Any
 
 from modnet.bank import BankConfig, ModuleBank
@@ -292,6 +293,15 @@ def validate(run: RunConfig) -> tuple[Universe, Split]:
             f"{universe.name!r} has none: use an image universe or pretrain.images=0"
         )
     return universe, split
+
+
+def saved_run(run_dir: str | Path) -> RunConfig:
+    """The :class:`RunConfig` of the ``run.py`` job in ``run_dir``, from the config Hydra saved
+    there (``.hydra/config.yaml``), to rebuild what that job built; pass it to :func:`validate`."""
+    from omegaconf import OmegaConf
+
+    values = OmegaConf.load(Path(run_dir) / ".hydra" / "config.yaml")
+    return OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(RunConfig), values))
 
 
 def register_configs() -> None:
