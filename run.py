@@ -211,7 +211,6 @@ def compare_finetuning(
 
 @hydra.main(version_base=None, config_path="conf", config_name="config")
 def main(cfg: DictConfig) -> None:
-    torch.set_num_threads(1)  # small networks: more threads only fight over 2 cores
     logging.getLogger("torchrl").setLevel(logging.WARNING)
     run: RunConfig = OmegaConf.to_object(cfg)
     run_dir = Path(HydraConfig.get().runtime.output_dir)
@@ -225,6 +224,7 @@ def main(cfg: DictConfig) -> None:
         log = RunLogger.open(run.logger, run_dir, f"{universe.name}-{'-'.join(split.holdout)}", universe.name)
     except (ConfigError, UniverseError, CheckpointError) as err:
         sys.exit(f"run.py: {err}")
+    torch.set_num_threads(run.threads)
     seconds: dict[str, float] = {}
     code = report.code_version()  # as it started (a resumed run: its last part)
 
@@ -278,6 +278,7 @@ def main(cfg: DictConfig) -> None:
         # 6. report: the table, zero_shot.csv, results.json, figures, logger
         results["seconds"] = {k: round(v, 1) for k, v in seconds.items()}
         results["code"] = code
+        results["threads"] = run.threads
         print(report.zero_shot_table(results))
         report.write_zero_shot_csv(results, run_dir / "zero_shot.csv")
         report.write_json(run_dir / "results.json", results)

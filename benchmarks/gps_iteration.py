@@ -10,6 +10,7 @@ from images the sampling also renders every frame).
 
     python benchmarks/gps_iteration.py [--iterations 3] [algo=mdgps]
     python benchmarks/gps_iteration.py --iterations 2 universe=color_reach     # from 64x80 images
+    python benchmarks/gps_iteration.py --iterations 2 universe=color_reach threads=2
 
 The last line is one JSON object with the figures.
 """
@@ -60,7 +61,6 @@ def main() -> None:
     args = parser.parse_args()
     if args.iterations < 2:
         parser.error("--iterations must be at least 2: the first iteration is not reported")
-    torch.set_num_threads(1)  # as run.py
     register_configs()
     try:  # a bad override ends in one line, before any work
         with initialize_config_dir(config_dir=str(CONF), version_base=None):
@@ -68,6 +68,7 @@ def main() -> None:
         universe, split = validate(run)
     except (HydraException, ConfigError, UniverseError) as err:
         parser.error(" ".join(str(err).split()))
+    torch.set_num_threads(run.threads)  # as run.py: 1 unless overridden (threads=2)
     config = run.gps_config()
     trainer = GPSTrainer(run.new_bank(universe), split.training, config, pixels=universe.pixels)
     per_iteration = []
@@ -96,6 +97,7 @@ def main() -> None:
         "samples_per_condition": config.samples_per_condition,
         "sgd_steps": config.sgd_steps,
         "iterations": args.iterations,
+        "threads": run.threads,
         "median_iteration_s": round(wall, 3),
         "share": {p: round(v, 3) for p, v in shares.items()},
         "unaccounted_share": round(1 - sum(shares.values()), 3),

@@ -8,9 +8,11 @@ alternation so a shared machine's load hits all alike:
 
 * ``state``: the bank of ``color_reach_state`` (the reference: what the state experiments pay);
 * ``pixels_stride1``: the vision bank with both convolutions at stride 1 (the layout before stride 2);
-* ``pixels``: the vision bank as built now (``BankConfig.conv_strides``, first conv stride 2).
+* ``pixels``: the vision bank as built now (``BankConfig.conv_strides``, first conv stride 2);
+* ``pixels_2_threads``: the same step on 2 torch threads (run.py's ``threads=2``) instead of 1.
 
-Prints progress, then ONE JSON object on its last line with the medians and the ratios.
+Every case but the last runs on 1 thread, as run.py does by default.  Prints progress, then
+ONE JSON object on its last line with the medians and the ratios.
 
     python benchmarks/pixel_sgd.py --repeats 5
 """
@@ -72,17 +74,33 @@ def sgd_step(config: BankConfig, pixels: bool, rows: int) -> Callable[[], None]:
     return step
 
 
+def on_threads(step: Callable[[], None], threads: int) -> Callable[[], None]:
+    """``step`` run on ``threads`` torch threads, the count restored after it."""
+
+    def run() -> None:
+        before = torch.get_num_threads()
+        torch.set_num_threads(threads)
+        try:
+            step()
+        finally:
+            torch.set_num_threads(before)
+
+    return run
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--batch-per-world", type=int, default=128, help="GPSConfig.batch_per_world")
     parser.add_argument("--repeats", type=int, default=5)
     args = parser.parse_args()
+    torch.set_num_threads(1)  # as run.py
 
     now = BankConfig()
     cases = {
         "state": sgd_step(now, False, args.batch_per_world),
         "pixels_stride1": sgd_step(BankConfig(conv_strides=(1, 1)), True, args.batch_per_world),
         "pixels": sgd_step(now, True, args.batch_per_world),
+        "pixels_2_threads": on_threads(sgd_step(now, True, args.batch_per_world), 2),
     }
     times: dict[str, list[float]] = {name: [] for name in cases}
     for step in cases.values():  # warm-up
@@ -105,6 +123,7 @@ def main() -> None:
         "median_ms": {name: round(value, 1) for name, value in ms.items()},
         "pixels_vs_state": round(ms["pixels"] / ms["state"], 2),
         "stride1_vs_strided": round(ms["pixels_stride1"] / ms["pixels"], 2),
+        "one_vs_two_threads": round(ms["pixels"] / ms["pixels_2_threads"], 2),
     }
     print(json.dumps(result))
 

@@ -53,6 +53,12 @@ def test_gps_iteration_benchmark_times_the_grid_a_run_trains_from_images():
     assert 0 < figures["sampling_vs_raw_mj_step"] < 1  # rendering and TorchRL cost more than mj_step
 
 
+def test_pixel_sgd_benchmark_times_one_and_two_threads_against_the_state_bank():
+    figures = last_json("pixel_sgd.py", "--batch-per-world", "2", "--repeats", "1")
+    assert set(figures["median_ms"]) == {"state", "pixels_stride1", "pixels", "pixels_2_threads"}
+    assert figures["threads"] == 1 and figures["one_vs_two_threads"] > 0 and figures["pixels_vs_state"] > 0
+
+
 def test_policy_passes_benchmark_gives_the_trainers_outputs_at_every_pass_size():
     figures = last_json("policy_passes.py", "--rows", "16", "--images", "40", "--repeats", "1")
     assert figures["trainer_rows_per_pass"] == PIXEL_ROWS_PER_PASS

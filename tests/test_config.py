@@ -62,6 +62,7 @@ def test_literal_choices_and_values_no_type_rules_out_fail_with_the_key():
         ("bank.policy", "hybrid", "bank.policy must be"),
         ("logger.backend", "mlflow", "logger.backend must be one of wandb, csv"),
         ("gps.iterations", 0, "gps.iterations must be at least 1"),
+        ("threads", 0, "threads must be at least 1, got 0"),
         ("bank.dropout", 1.5, "dropout must be a probability"),
         ("gps.badmm.max_policy_weight", 1e-3, r"gps\.badmm: .*max_policy_weight, got 1e-06 / 0.005 / 0.001"),
     ]:

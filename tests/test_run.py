@@ -82,6 +82,7 @@ def test_tiny_pipeline_end_to_end_in_under_two_minutes(tiny_run):
     results = json.loads((run_dir / "results.json").read_text())
     assert results["universe"] == "tiny" and results["holdout"] == "four_link/reach_black"
     assert results["success_distance"] == 0.1 and results["iterations"] == ITERATIONS
+    assert results["threads"] == 1  # torch's, by default: what the figures repeat at
     samples = results["samples"]
     assert samples["trajectories"] > 0
     assert samples["env_steps"] == samples["trajectories"] * results["horizon"]

@@ -210,6 +210,10 @@ class RunConfig:
         seed: initialisation seed of the bank (``gps.seed`` follows it in ``conf/config.yaml``).
         resume: continue from the run directory's checkpoint.
         finetune: after the zero-shot evaluation, compare GPS fine-tuning from four starts.
+        threads: torch's threads for the networks (1: the small state networks gain nothing
+            from more on 2 cores). From images 2 make an S-step about twice as fast on 2
+            cores (``benchmarks/pixel_sgd.py --threads 2``), but sums then run in another
+            order: a run's figures repeat to the digit only at the same count.
         pretrain: pose-regression pretraining of the vision task modules before GPS
             (:class:`modnet.pretrain.PretrainConfig`; ``pretrain.images=0`` is off).
     """
@@ -219,6 +223,7 @@ class RunConfig:
     seed: int = 0
     resume: bool = False
     finetune: bool = False
+    threads: int = 1
     gps: GPSSchema = field(default_factory=GPSSchema)  # type: ignore[valid-type]
     bank: BankSchema = field(default_factory=BankSchema)  # type: ignore[valid-type]
     pretrain: PretrainSchema = field(default_factory=PretrainSchema)  # type: ignore[valid-type]
@@ -254,6 +259,8 @@ class RunConfig:
         self.pretrain_config()
         if self.bank.policy not in ("modular", "monolithic"):
             raise ConfigError(f"bank.policy must be 'modular' or 'monolithic', got {self.bank.policy!r}")
+        if self.threads < 1:
+            raise ConfigError(f"threads must be at least 1, got {self.threads}")
         if self.gps.iterations < 1:
             raise ConfigError(f"gps.iterations must be at least 1, got {self.gps.iterations}")
         if self.logger.backend not in LOGGERS:
