@@ -211,9 +211,10 @@ class RunConfig:
         resume: continue from the run directory's checkpoint.
         finetune: after the zero-shot evaluation, compare GPS fine-tuning from four starts.
         threads: torch's threads for the networks (1: the small state networks gain nothing
-            from more on 2 cores). From images 2 make an S-step about twice as fast on 2
-            cores (``benchmarks/pixel_sgd.py --threads 2``), but sums then run in another
-            order: a run's figures repeat to the digit only at the same count.
+            from more on 2 cores). From images 2 make an S-step 1.8 times as fast on 2 cores
+            (``benchmarks/pixel_sgd.py``, ``one_vs_two_threads``), but sums then run in another
+            order: a run's figures repeat to the digit only at the same count (``results.json``
+            records it; a resumed run, its last part's).
         pretrain: pose-regression pretraining of the vision task modules before GPS
             (:class:`modnet.pretrain.PretrainConfig`; ``pretrain.images=0`` is off).
     """
