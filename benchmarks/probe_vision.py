@@ -36,6 +36,7 @@ def pretrained_bank(run_dir: Path) -> tuple[ModuleBank, bool]:
     and whether the pretraining repeated the run's figures."""
     run = saved_run(run_dir)
     universe, split = validate(run)
+    torch.set_num_threads(run.threads)  # the run's count: another sums in another order
     bank = run.new_bank(universe)
     report = pretrain_vision(bank, split.training, run.pretrain_config())
     recorded = json.loads((run_dir / "pretrain.json").read_text())
@@ -80,7 +81,7 @@ def main() -> None:
         parser.error(f"universe {universe.name!r} reads no images: nothing to probe")
     if args.before_gps and not (args.run_dir / "pretrain.json").exists():
         parser.error(f"{args.run_dir} ran without pretraining (no pretrain.json): nothing for --before-gps")
-    torch.set_num_threads(1)  # as run.py
+    torch.set_num_threads(1)  # as run.py by default
     holdout = results["holdout"]
     start = time.perf_counter()
     out = {"benchmark": "probe_vision", "run_dir": str(args.run_dir), "holdout": holdout}

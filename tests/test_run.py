@@ -424,6 +424,7 @@ def test_an_image_run_pretrains_once_reports_it_and_a_resumed_run_does_not_pretr
         "gps.initial_sgd_steps=5",
         "pretrain.images=20",
         "pretrain.epochs=1",
+        "threads=2",  # the probe must repeat the pretraining at the run's thread count
         f"hydra.run.dir={tmp_path}",
     ]
     first = run_py(*small, "gps.iterations=1")
