@@ -21,6 +21,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
+from modnet.render_process import RenderProcess, render_positions
 from modnet.specs import EE_DIM, PIXELS_SHAPE, TORQUE_LIMIT
 from modnet.worlds import CONDITION_SETS, World, get_world
 
@@ -85,7 +86,9 @@ class WorldEnv(EnvBase):
     reached state and the action.
 
     The copies are stepped on ``num_threads`` threads (default: up to 2, one per 8 copies);
-    results do not depend on the number of threads.
+    results do not depend on the number of threads.  Their frames are drawn in this process
+    and ``render_processes`` others (:class:`~modnet.render_process.RenderProcess`; default:
+    one per 16 copies, up to one less than the cores and at most 3), with the same pixels.
 
     Examples:
         >>> env = WorldEnv("four_link", "reach_black", num_envs=8)
@@ -108,6 +111,7 @@ class WorldEnv(EnvBase):
         shaping: bool = True,
         horizon: int | None = None,
         num_threads: int | None = None,
+        render_processes: int | None = None,
     ):
         if isinstance(num_envs, bool) or not isinstance(num_envs, int) or num_envs < 1:
             raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
@@ -115,6 +119,10 @@ class WorldEnv(EnvBase):
             raise ValueError(f"horizon must be at least 1, got {horizon}")
         if conditions not in CONDITION_SETS:
             raise ValueError(f"unknown condition set {conditions!r}; valid sets: {', '.join(CONDITION_SETS)}")
+        if render_processes is not None and (not isinstance(render_processes, int) or render_processes < 0):
+            raise ValueError(f"render_processes must be a non-negative integer, got {render_processes!r}")
+        if render_processes and not pixels:
+            raise ValueError("render_processes draw frames: they need pixels=True")
         self.world: World = get_world(robot, task)
         self.condition_params = self.world.conditions(conditions, seed, num_conditions)
         self.horizon = horizon or self.world.task.horizon
@@ -131,6 +139,14 @@ class WorldEnv(EnvBase):
         self._picture_renderers: dict[tuple[int, int], mujoco.Renderer] = {}  # render_frames' sizes
         self._frames = np.zeros((num_envs, *PIXELS_SHAPE), dtype=np.uint8) if pixels else None
         self._camera = CAMERA
+        if render_processes is None:
+            render_processes = min((os.cpu_count() or 1) - 1, num_envs // 16, 3) if pixels else 0
+        self._render_processes = [
+            RenderProcess(model, self._camera, *PIXELS_SHAPE[:2], name=self.world.name)
+            for _ in range(render_processes)
+        ]
+        for process in self._render_processes:
+            weakref.finalize(self, process.close)
         task_def = self.world.task
         self._ee_index = torch.as_tensor(np.r_[task_def.slot("ee", "pos"), task_def.slot("ee", "vel")])
         # mujoco releases the GIL while stepping: split the copies over a few threads
@@ -183,10 +199,17 @@ class WorldEnv(EnvBase):
         )
 
     def _render(self, indices) -> None:
-        if self._renderer is not None:  # GL work stays on this thread
-            for i in indices:
-                self._renderer.update_scene(self._datas[i], camera=self._camera)
-                self._renderer.render(out=self._frames[i])
+        if self._renderer is None:
+            return
+        indices = np.asarray(indices, dtype=np.int64)
+        own, *shares = np.array_split(indices, 1 + len(self._render_processes))
+        for process, share in zip(self._render_processes, shares, strict=True):
+            process.submit(render_positions([self._datas[i] for i in share]))
+        for i in own:  # GL work stays on this thread
+            self._renderer.update_scene(self._datas[i], camera=self._camera)
+            self._renderer.render(out=self._frames[i])
+        for process, share in zip(self._render_processes, shares, strict=True):
+            self._frames[share] = process.collect()
 
     def _advance(self, indices: np.ndarray, controls: np.ndarray) -> None:
         for i in indices:
@@ -245,6 +268,18 @@ class WorldEnv(EnvBase):
         # The dynamics are deterministic; the seed only chose the condition sets.
         return None
 
+    def close(self, *, raise_if_closed: bool = True) -> None:
+        """End the render processes (frames are drawn here from then on), then close as TorchRL does."""
+        for process in self._render_processes:
+            process.close()
+        self._render_processes = []
+        super().close(raise_if_closed=raise_if_closed)
+
+    @property
+    def num_render_processes(self) -> int:
+        """How many processes besides this one draw the frames (0 without pixels)."""
+        return len(self._render_processes)
+
     # --- for evaluation and pictures --------------------------------------------------------------
     def final_distance(self, rollout: TensorDictBase, last: int = FINAL_STEPS) -> torch.Tensor:
         """The paper's metric: the task's distance averaged over the last ``last`` steps, ``[B]``.
@@ -283,6 +318,7 @@ def make_env(
     shaping: bool = True,
     horizon: int | None = None,
     num_threads: int | None = None,
+    render_processes: int | None = None,
 ) -> WorldEnv:
     """The batched TorchRL environment of ``robot`` doing ``task``; see :class:`WorldEnv`.
 
@@ -292,5 +328,6 @@ def make_env(
         torch.Size([4, 5, 1])
     """
     return WorldEnv(
-        robot, task, num_envs, pixels, conditions, seed, num_conditions, shaping, horizon, num_threads
+        robot, task, num_envs, pixels, conditions, seed, num_conditions, shaping, horizon, num_threads,
+        render_processes,
     )
