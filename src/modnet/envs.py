@@ -270,7 +270,7 @@ class WorldEnv(EnvBase):
 
     def close(self, *, raise_if_closed: bool = True) -> None:
         """End the render processes (frames are drawn here from then on), then close as TorchRL does."""
-        for process in self._render_processes:
+        for process in getattr(self, "_render_processes", []):  # a half-built env has none
             process.close()
         self._render_processes = []
         super().close(raise_if_closed=raise_if_closed)
