@@ -42,6 +42,7 @@ from modnet.checkpoint import CHECKPOINT, Checkpoint, CheckpointError, load_chec
 from modnet.config import ConfigError, RunConfig, flatten, register_configs, validate  # noqa: E402
 from modnet.envs import WorldEnv  # noqa: E402
 from modnet.evaluate import FineTuning, ZeroShot, evaluation_env, finetune, zero_shot  # noqa: E402
+from modnet.gps.errors import NumericalError  # noqa: E402
 from modnet.gps.trainer import GPSConfig, GPSTrainer  # noqa: E402
 from modnet.loggers import RunLogger  # noqa: E402
 from modnet.pretrain import pretrain_vision  # noqa: E402
@@ -209,6 +210,14 @@ def compare_finetuning(
     return tuning
 
 
+def write_results(run_dir: Path, results: dict, seconds: dict[str, float], code: dict, threads: int) -> None:
+    """``results.json``: the figures, with the seconds each stage took, the code and torch's threads."""
+    results["seconds"] = {k: round(v, 1) for k, v in seconds.items()}
+    results["code"] = code
+    results["threads"] = threads
+    report.write_json(run_dir / "results.json", results)
+
+
 @hydra.main(version_base=None, config_path="conf", config_name="config")
 def main(cfg: DictConfig) -> None:
     logging.getLogger("torchrl").setLevel(logging.WARNING)
@@ -263,25 +272,27 @@ def main(cfg: DictConfig) -> None:
             # as measured per module when it ran, so a resumed run reports it too
             seconds["pretrain"] = sum(f["seconds"] for f in results["pretrain"].values())
         seconds["evaluate"] = time.perf_counter() - start
+        print(report.zero_shot_table(results))
+        report.write_zero_shot_csv(results, run_dir / "zero_shot.csv")
 
         # 5. optionally: GPS on the held-out world from four starts
         if run.finetune:
             start = time.perf_counter()
             wrong_task = result.wrong_task[0] if result.wrong_task else None
-            tuning = compare_finetuning(run, universe, split, run_dir, wrong_task, log)
+            try:
+                tuning = compare_finetuning(run, universe, split, run_dir, wrong_task, log)
+            except NumericalError as err:  # keep what was measured, then stop with the error
+                results["finetune_failed"] = str(err)
+                write_results(run_dir, results, seconds, code, run.threads)
+                raise
             results["finetune"] = tuning.curves
             results["finetune_sampled"] = tuning.sampled
             results["finetune_samples"] = tuning.samples
             figures.append("finetune")
             seconds["finetune"] = time.perf_counter() - start
 
-        # 6. report: the table, zero_shot.csv, results.json, figures, logger
-        results["seconds"] = {k: round(v, 1) for k, v in seconds.items()}
-        results["code"] = code
-        results["threads"] = run.threads
-        print(report.zero_shot_table(results))
-        report.write_zero_shot_csv(results, run_dir / "zero_shot.csv")
-        report.write_json(run_dir / "results.json", results)
+        # 6. report: results.json, figures, logger
+        write_results(run_dir, results, seconds, code, run.threads)
         report.plot_zero_shot(results, run_dir / "zero_shot.png")
         report.save_final_positions(
             result.frames, run_dir / "final_positions.png", run_dir / "final_positions.gif"

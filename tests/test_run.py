@@ -163,6 +163,36 @@ def test_published_fine_tuning_has_curves_iterations_to_success_samples_and_comm
     assert tuning["paper"].startswith("the composed start without shaping")  # the paper's held-out world
 
 
+def test_a_numerical_failure_in_fine_tuning_keeps_the_zero_shot_figures_and_names_itself(tmp_path):
+    """The zero-shot table, zero_shot.csv and results.json (with the failure) are written before
+    the error ends the run; nothing measured is lost."""
+    run_dir = tmp_path / "failing"
+    overrides = ["universe=tiny", "logger=csv", "gps.iterations=1", "finetune=true"]
+    overrides.append(f"hydra.run.dir={run_dir}")
+    script = f"""
+import runpy, sys
+import modnet.evaluate
+from modnet.gps.errors import NumericalError
+def fail(*args, **kwargs):
+    raise NumericalError("injected Q_uu failure", world="four_link/reach_black", condition=2, iteration=1)
+modnet.evaluate.finetune = fail  # run.py binds it when it runs, below
+sys.argv = ["run.py", *{overrides!r}]
+runpy.run_path({str(ROOT / "run.py")!r}, run_name="__main__")
+"""
+    done = subprocess.run(
+        [sys.executable, "-c", script], cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=300
+    )
+    assert done.returncode != 0
+    assert "injected Q_uu failure [world=four_link/reach_black, condition=2, iteration=1]" in done.stderr
+    assert "Zero-shot four_link/reach_black" in done.stdout
+    results = json.loads((run_dir / "results.json").read_text())
+    assert results["finetune_failed"].startswith("injected Q_uu failure")
+    assert "finetune" not in results
+    assert results["methods"]["composed"]["mean"] > 0 and results["iterations"] == 1
+    assert (run_dir / "zero_shot.csv").read_text().count("\n") >= 5
+    assert (run_dir / "bank" / "manifest.json").exists()
+
+
 def test_the_papers_claims_stand_only_beside_the_world_the_paper_held_out(tiny_run, tmp_path):
     run_dir, done, _ = tiny_run
     assert done.returncode == 0, done.stderr[-3000:]
