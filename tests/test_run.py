@@ -191,6 +191,8 @@ runpy.run_path({str(ROOT / "run.py")!r}, run_name="__main__")
     assert results["methods"]["composed"]["mean"] > 0 and results["iterations"] == 1
     assert (run_dir / "zero_shot.csv").read_text().count("\n") >= 5
     assert (run_dir / "bank" / "manifest.json").exists()
+    published = publish_zero_shot(run_dir, "failing", tmp_path / "docs")
+    assert published["finetune_failed"] == results["finetune_failed"] and "finetune" not in published
 
 
 def test_the_papers_claims_stand_only_beside_the_world_the_paper_held_out(tiny_run, tmp_path):
