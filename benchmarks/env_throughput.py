@@ -59,13 +59,15 @@ def dmcontrol_steps_per_s(robot: str, task: str, horizon: int) -> float:
 
 def pixel_env_frames_per_s(
     robot: str, task: str, num_envs: int, horizon: int, render_processes: int | None = None
-) -> float:
+) -> tuple[float, int]:
+    """Frames/s of a pixel env's rollout, and how many render processes drew beside it."""
     env = modnet.make_env(robot, task, num_envs=num_envs, pixels=True, render_processes=render_processes)
     start = time.perf_counter()
     env.rollout(horizon)
     rate = num_envs * horizon / (time.perf_counter() - start)
+    processes = env.num_render_processes
     env.close()
-    return rate
+    return rate, processes
 
 
 def renderer_frames_per_s(world, frames: int) -> float:
@@ -101,15 +103,13 @@ def main() -> None:
         runs["raw"].append(raw_steps_per_s(world, args.num_envs * T))
         runs["batched"].append(batched_steps_per_s(args.robot, args.task, args.num_envs, T))
         runs["dmcontrol"].append(dmcontrol_steps_per_s(args.robot, args.task, T))
-        runs["pixels"].append(pixel_env_frames_per_s(args.robot, args.task, args.pixel_envs, T))
+        rate, render_processes = pixel_env_frames_per_s(args.robot, args.task, args.pixel_envs, T)
+        runs["pixels"].append(rate)
         runs["pixels_1p"].append(
-            pixel_env_frames_per_s(args.robot, args.task, args.pixel_envs, T, render_processes=0)
+            pixel_env_frames_per_s(args.robot, args.task, args.pixel_envs, T, render_processes=0)[0]
         )
         runs["renderer"].append(renderer_frames_per_s(world, args.pixel_envs * T))
     med = {k: statistics.median(v) for k, v in runs.items()}
-    pixel_env = modnet.make_env(args.robot, args.task, args.pixel_envs, pixels=True)
-    render_processes = pixel_env.num_render_processes
-    pixel_env.close()
     for k, v in runs.items():
         print(f"{k:>10}: median {med[k]:>10.0f}/s  runs {[round(x) for x in v]}")
     figures = {

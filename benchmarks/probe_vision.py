@@ -36,9 +36,13 @@ def pretrained_bank(run_dir: Path) -> tuple[ModuleBank, bool]:
     and whether the pretraining repeated the run's figures."""
     run = saved_run(run_dir)
     universe, split = validate(run)
+    before = torch.get_num_threads()
     torch.set_num_threads(run.threads)  # the run's count: another sums in another order
-    bank = run.new_bank(universe)
-    report = pretrain_vision(bank, split.training, run.pretrain_config())
+    try:
+        bank = run.new_bank(universe)
+        report = pretrain_vision(bank, split.training, run.pretrain_config())
+    finally:
+        torch.set_num_threads(before)  # the probe itself runs as the rest of this script
     recorded = json.loads((run_dir / "pretrain.json").read_text())
     return bank, validation_errors(report) == validation_errors(recorded)
 

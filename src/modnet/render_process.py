@@ -57,6 +57,15 @@ def render_positions(datas) -> np.ndarray:
     return np.stack([np.concatenate([d.qpos, d.mocap_pos.ravel(), d.mocap_quat.ravel()]) for d in datas])
 
 
+def set_render_positions(model: mujoco.MjModel, data: mujoco.MjData, row: np.ndarray) -> None:
+    """The inverse of :func:`render_positions` for one copy, then the position stage a frame reads."""
+    nq, nmocap = model.nq, model.nmocap
+    data.qpos[:] = row[:nq]
+    data.mocap_pos[:] = row[nq : nq + 3 * nmocap].reshape(nmocap, 3)
+    data.mocap_quat[:] = row[nq + 3 * nmocap :].reshape(nmocap, 4)
+    mujoco.mj_fwdPosition(model, data)
+
+
 class RenderProcess:
     """A child process drawing frames of ``model`` from ``camera``, ``height`` x ``width``.
 
@@ -130,8 +139,7 @@ def _serve(stdin, stdout) -> None:
     model, camera, height, width = pickle.loads(_read_exactly(stdin, size))
     data = mujoco.MjData(model)
     renderer = mujoco.Renderer(model, height, width)
-    nq, nmocap = model.nq, model.nmocap
-    row = nq + 7 * nmocap
+    row = model.nq + 7 * model.nmocap
     stdout.write(b"r")
     stdout.flush()
     while True:
@@ -142,10 +150,7 @@ def _serve(stdin, stdout) -> None:
             break
         frames = np.empty((len(rows), height, width, 3), dtype=np.uint8)
         for i, positions in enumerate(rows):
-            data.qpos[:] = positions[:nq]
-            data.mocap_pos[:] = positions[nq : nq + 3 * nmocap].reshape(nmocap, 3)
-            data.mocap_quat[:] = positions[nq + 3 * nmocap :].reshape(nmocap, 4)
-            mujoco.mj_fwdPosition(model, data)
+            set_render_positions(model, data, positions)
             renderer.update_scene(data, camera=camera)
             renderer.render(out=frames[i])
         stdout.write(frames.tobytes())  # all at once: the parent reads after drawing its own share
