@@ -41,8 +41,7 @@ from modnet.bank import ModuleBank  # noqa: E402
 from modnet.checkpoint import CHECKPOINT, Checkpoint, CheckpointError, load_checkpoint, save_checkpoint  # noqa: E402
 from modnet.config import ConfigError, RunConfig, flatten, register_configs, validate  # noqa: E402
 from modnet.envs import WorldEnv  # noqa: E402
-from modnet.evaluate import FineTuning, ZeroShot, evaluation_env, finetune, zero_shot  # noqa: E402
-from modnet.gps.errors import NumericalError  # noqa: E402
+from modnet.evaluate import FineTuning, FineTuningFailed, ZeroShot, evaluation_env, finetune, zero_shot  # noqa: E402
 from modnet.gps.trainer import GPSConfig, GPSTrainer  # noqa: E402
 from modnet.loggers import RunLogger  # noqa: E402
 from modnet.pretrain import pretrain_vision  # noqa: E402
@@ -182,32 +181,40 @@ def evaluate(run: RunConfig, universe: Universe, split: Split, bank: ModuleBank)
 
 def compare_finetuning(
     run: RunConfig, universe: Universe, split: Split, run_dir: Path, wrong_task: str | None, log: RunLogger
-) -> FineTuning:
+) -> tuple[FineTuning, FineTuningFailed | None]:
     """GPS on the held-out world from the composed modules, the wrong task module and from scratch
     (with and without shaping): the network's mean test distance per iteration, plotted and logged,
-    and the mean distance of each iteration's samples, logged."""
-    tuning = finetune(
-        run_dir / "bank",
-        *split.holdout,
-        held_out_env(run, universe, split),
-        run.gps_config(),
-        iterations=run.eval.finetune_iterations,
-        wrong_task=wrong_task,
-        starts=run.eval.finetune_starts,
-        pixels=universe.pixels,
-        progress=lambda s, i, d, sampled: print(
-            f"fine-tuning from {s}, iteration {i}: test distance {d:.3f} (its samples {sampled:.3f})"
-        ),
-    )
+    and the mean distance of each iteration's samples, logged. A start that fails numerically keeps
+    its curve up to the failure; the failure comes back beside the curves, for the caller to raise
+    once everything is written."""
+    failure = None
+    try:
+        tuning = finetune(
+            run_dir / "bank",
+            *split.holdout,
+            held_out_env(run, universe, split),
+            run.gps_config(),
+            iterations=run.eval.finetune_iterations,
+            wrong_task=wrong_task,
+            starts=run.eval.finetune_starts,
+            pixels=universe.pixels,
+            progress=lambda s, i, d, sampled: print(
+                f"fine-tuning from {s}, iteration {i}: test distance {d:.3f} (its samples {sampled:.3f})"
+            ),
+        )
+    except FineTuningFailed as err:
+        tuning, failure = err.result, err
+        for start, message in tuning.failed.items():
+            print(f"fine-tuning from {start} stopped: {message}")
     title = f"fine-tuning {world_name(split.holdout)}"
     success = get_world(*split.holdout).task.success_distance
-    report.plot_finetune(tuning.curves, success, run_dir / "finetune.png", title=title)
+    report.plot_finetune(tuning.curves, success, run_dir / "finetune.png", title=title, failed=tuning.failed)
     for name, curve in tuning.curves.items():
         for i, distance in enumerate(curve):
             log.scalars({f"finetune/{name}/distance": distance}, step=i)
         for i, distance in enumerate(tuning.sampled[name], start=1):
             log.scalars({f"finetune/{name}/sampled_distance": distance}, step=i)
-    return tuning
+    return tuning, failure
 
 
 def write_results(run_dir: Path, results: dict, seconds: dict[str, float], code: dict, threads: int) -> None:
@@ -276,15 +283,13 @@ def main(cfg: DictConfig) -> None:
         report.write_zero_shot_csv(results, run_dir / "zero_shot.csv")
 
         # 5. optionally: GPS on the held-out world from four starts
+        failure = None  # a start that failed numerically: raised once everything is written
         if run.finetune:
             start = time.perf_counter()
             wrong_task = result.wrong_task[0] if result.wrong_task else None
-            try:
-                tuning = compare_finetuning(run, universe, split, run_dir, wrong_task, log)
-            except NumericalError as err:  # keep what was measured, then stop with the error
-                results["finetune_failed"] = str(err)
-                write_results(run_dir, results, seconds, code, run.threads)
-                raise
+            tuning, failure = compare_finetuning(run, universe, split, run_dir, wrong_task, log)
+            if tuning.failed:
+                results["finetune_failed"] = tuning.failed
             results["finetune"] = tuning.curves
             results["finetune_sampled"] = tuning.sampled
             results["finetune_samples"] = tuning.samples
@@ -308,6 +313,8 @@ def main(cfg: DictConfig) -> None:
         )
         log.figures({name: run_dir / f"{name}.png" for name in figures})
         print(f"results in {run_dir}")
+    if failure is not None:  # after the logger has closed, so that it keeps everything
+        raise failure
 
 
 def expand_holdout_all(argv: list[str]) -> list[str]:

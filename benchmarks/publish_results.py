@@ -137,7 +137,7 @@ def zero_shot(run_dir: Path, experiment: str, docs: Path = DOCS) -> dict:
             module: {k: _rounded(v) for k, v in figures.items() if k != "seconds"}
             for module, figures in results["pretrain"].items()
         }
-    if "finetune_failed" in results:  # fine-tuning stopped with a numerical error: no curves
+    if "finetune_failed" in results:  # {start: the numerical error that stopped it}; its curve ends there
         out["finetune_failed"] = results["finetune_failed"]
     if "finetune" in results:
         out["finetune"] = finetuning(results)

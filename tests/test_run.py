@@ -163,19 +163,29 @@ def test_published_fine_tuning_has_curves_iterations_to_success_samples_and_comm
     assert tuning["paper"].startswith("the composed start without shaping")  # the paper's held-out world
 
 
-def test_a_numerical_failure_in_fine_tuning_keeps_the_zero_shot_figures_and_names_itself(tmp_path):
-    """The zero-shot table, zero_shot.csv and results.json (with the failure) are written before
-    the error ends the run; nothing measured is lost."""
+def test_a_numerical_failure_in_one_fine_tuning_start_stops_only_that_start_and_names_itself(tmp_path):
+    """The wrong-task start fails in its second iteration: its curve keeps the first, the starts
+    after it still run, everything is written (results.json with the failure, the figure, the
+    published JSON), and then the error ends the run, naming the start, world and condition."""
     run_dir = tmp_path / "failing"
     overrides = ["universe=tiny", "logger=csv", "gps.iterations=1", "finetune=true"]
-    overrides.append(f"hydra.run.dir={run_dir}")
+    overrides += ["eval.finetune_iterations=2", f"hydra.run.dir={run_dir}"]
     script = f"""
 import runpy, sys
-import modnet.evaluate
+import modnet.evaluate as evaluate
 from modnet.gps.errors import NumericalError
-def fail(*args, **kwargs):
-    raise NumericalError("injected Q_uu failure", world="four_link/reach_black", condition=2, iteration=1)
-modnet.evaluate.finetune = fail  # run.py binds it when it runs, below
+starts, real_start_bank, RealTrainer = [], evaluate._start_bank, evaluate.GPSTrainer
+def start_bank(bank_dir, start, *args):
+    starts.append(start)
+    return real_start_bank(bank_dir, start, *args)
+class FailingTrainer(RealTrainer):
+    def step(self):
+        if starts[-1] == "wrong_task" and self.iteration == 1:
+            raise NumericalError(
+                "injected Q_uu failure", world="four_link/reach_black", condition=2, iteration=1
+            )
+        return super().step()
+evaluate._start_bank, evaluate.GPSTrainer = start_bank, FailingTrainer  # finetune looks them up when it runs
 sys.argv = ["run.py", *{overrides!r}]
 runpy.run_path({str(ROOT / "run.py")!r}, run_name="__main__")
 """
@@ -183,16 +193,22 @@ runpy.run_path({str(ROOT / "run.py")!r}, run_name="__main__")
         [sys.executable, "-c", script], cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=300
     )
     assert done.returncode != 0
-    assert "injected Q_uu failure [world=four_link/reach_black, condition=2, iteration=1]" in done.stderr
+    message = "injected Q_uu failure [world=four_link/reach_black, condition=2, iteration=1]"
+    assert f"fine-tuning failed from wrong_task: {message}" in done.stderr
     assert "Zero-shot four_link/reach_black" in done.stdout
+    assert f"fine-tuning from wrong_task stopped: {message}" in done.stdout
     results = json.loads((run_dir / "results.json").read_text())
-    assert results["finetune_failed"].startswith("injected Q_uu failure")
-    assert "finetune" not in results
+    assert results["finetune_failed"] == {"wrong_task": message}
+    lengths = {start: len(curve) for start, curve in results["finetune"].items()}
+    assert lengths == {"composed": 3, "wrong_task": 2, "scratch_shaping": 3, "scratch_no_shaping": 3}
+    sampled = {start: len(curve) for start, curve in results["finetune_sampled"].items()}
+    assert sampled == {start: n - 1 for start, n in lengths.items()}
     assert results["methods"]["composed"]["mean"] > 0 and results["iterations"] == 1
     assert (run_dir / "zero_shot.csv").read_text().count("\n") >= 5
-    assert (run_dir / "bank" / "manifest.json").exists()
+    assert (run_dir / "finetune.png").stat().st_size > 0 and (run_dir / "bank" / "manifest.json").exists()
     published = publish_zero_shot(run_dir, "failing", tmp_path / "docs")
-    assert published["finetune_failed"] == results["finetune_failed"] and "finetune" not in published
+    assert published["finetune_failed"] == results["finetune_failed"]
+    assert {s: len(c) for s, c in published["finetune"]["curves"].items()} == lengths
 
 
 def test_the_papers_claims_stand_only_beside_the_world_the_paper_held_out(tiny_run, tmp_path):

@@ -17,6 +17,8 @@ left things worse than it found them.
 :func:`finetune` runs GPS on the held-out world from the composed modules and the wrong task
 module (both without the cost's shaping term, as in the paper), and from scratch with and
 without it, and records the neural network policy's test distance after every iteration.
+A start that fails numerically stops there; the others still run, and
+:class:`FineTuningFailed` then carries everything measured.
 
 Examples:
     >>> from modnet.bank import ModuleBank
@@ -45,12 +47,14 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from modnet.bank import MONOLITHIC, ModuleBank
 from modnet.envs import WorldEnv, make_env
+from modnet.gps.errors import NumericalError
 from modnet.gps.trainer import GPSConfig, GPSTrainer
 from modnet.worlds import get_world
 
 __all__ = [
     "FINETUNE_STARTS",
     "FineTuning",
+    "FineTuningFailed",
     "Scores",
     "ZeroShot",
     "evaluation_env",
@@ -296,6 +300,20 @@ class FineTuning:
     curves: dict[str, list[float]]
     sampled: dict[str, list[float]]
     samples: dict[str, dict[str, int]]
+    #: the starts a :class:`~modnet.gps.errors.NumericalError` stopped, with its message; their
+    #: curves end at the last iteration that finished
+    failed: dict[str, str] = field(default_factory=dict)
+
+
+class FineTuningFailed(RuntimeError):
+    """Some fine-tuning starts failed numerically; ``result`` holds what every start measured
+    (the failed ones up to their last finished iteration), ``errors`` each failure."""
+
+    def __init__(self, result: FineTuning, errors: dict[str, NumericalError]) -> None:
+        self.result = result
+        self.errors = errors
+        lines = "; ".join(f"from {start}: {err}" for start, err in errors.items())
+        super().__init__(f"fine-tuning failed {lines}")
 
 
 def start_config(config: GPSConfig, start: str) -> GPSConfig:
@@ -338,22 +356,32 @@ def finetune(
     samples and each start's sample counts; ``wrong_task`` is left out when there is no wrong
     task module (None).  ``progress(start, iteration, test_distance, sampled_distance)`` is
     called after each iteration.
+
+    A :class:`~modnet.gps.errors.NumericalError` stops only its own start: the other starts
+    still run (each is a fresh trainer with the same seeds), and then :class:`FineTuningFailed`
+    is raised with the complete :class:`FineTuning`, whose ``failed`` names the stopped starts.
     """
     bank_dir = Path(bank_dir)
     result = FineTuning(curves={}, sampled={}, samples={})
+    errors: dict[str, NumericalError] = {}
     for start in starts:
         if start == "wrong_task" and wrong_task is None:
             continue
         bank = _start_bank(bank_dir, start, robot, task, wrong_task, config.seed)
         trainer = GPSTrainer(bank, [(robot, task)], start_config(config, start), pixels=pixels)
         curve, sampled = [score(bank, robot, task, env).mean], []
-        for iteration in range(iterations):
-            (diagnostics,) = trainer.step().values()  # the held-out world is the only one
-            sampled.append(float(diagnostics["distance"]))
-            curve.append(score(bank, robot, task, env).mean)
-            if progress is not None:
-                progress(start, iteration + 1, curve[-1], sampled[-1])
-        result.curves[start] = curve
-        result.sampled[start] = sampled
+        result.curves[start], result.sampled[start] = curve, sampled
+        try:
+            for iteration in range(iterations):
+                (diagnostics,) = trainer.step().values()  # the held-out world is the only one
+                sampled.append(float(diagnostics["distance"]))
+                curve.append(score(bank, robot, task, env).mean)
+                if progress is not None:
+                    progress(start, iteration + 1, curve[-1], sampled[-1])
+        except NumericalError as err:
+            errors[start] = err
+            result.failed[start] = str(err)
         result.samples[start] = trainer.samples
+    if errors:
+        raise FineTuningFailed(result, errors)
     return result

@@ -28,7 +28,7 @@ import io
 import json
 import os
 import subprocess
-from collections.abc import Mapping, Sequence
+from collections.abc import Collection, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -210,12 +210,17 @@ def plot_finetune(
     success_distance: float,
     path: str | os.PathLike | None = None,
     title: str = "",
+    failed: Collection[str] = (),
 ) -> Figure:
-    """The neural network policy's mean test distance per fine-tuning iteration, one line per start."""
+    """The neural network policy's mean test distance per fine-tuning iteration, one line per start;
+    the ``failed`` starts (stopped by a numerical failure) end in a cross and say so."""
     fig = Figure(figsize=(5.5, 3.6), layout="constrained")
     ax = fig.subplots()
     for start, curve in curves.items():
-        ax.plot(range(len(curve)), curve, marker=".", label=start.replace("_", " "))
+        label = start.replace("_", " ") + (" (numerical failure)" if start in failed else "")
+        (line,) = ax.plot(range(len(curve)), curve, marker=".", label=label)
+        if start in failed:
+            ax.plot(len(curve) - 1, curve[-1], marker="x", ms=9, color=line.get_color())
     ax.axhline(success_distance, color="k", lw=0.8, ls="--", label="success distance")
     ax.set_xlabel("GPS iteration on the held-out world")
     ax.xaxis.set_major_locator(MaxNLocator(integer=True))

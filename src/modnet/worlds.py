@@ -119,6 +119,19 @@ class World:
         return self.robot.state_dim + self.task.state_dim
 
     @property
+    def state_labels(self) -> tuple[str, ...]:
+        """A name for each entry of the state ``[robot_state, task_state]``, for messages.
+
+        Examples:
+            >>> get_world("three_link", "push").state_labels[:7]
+            ('q0', 'q1', 'q2', 'qd0', 'qd1', 'qd2', 'ee_pos_x')
+        """
+        n = self.robot.n_joints
+        robot = [f"q{i}" for i in range(n)] + [f"qd{i}" for i in range(n)]
+        task = [f"{name}_{kind}_{axis}" for name, kind in self.task.observables for axis in "xy"]
+        return (*robot, *task)
+
+    @property
     def param_dim(self) -> int:
         return self.robot.n_joints + self.task.param_dim
 

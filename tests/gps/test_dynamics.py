@@ -9,6 +9,7 @@ from modnet.gps.dynamics import (
     GMM,
     DynamicsPriorConfig,
     DynamicsPriorGMM,
+    LinearGaussianDynamics,
     PolicyPriorGMM,
     conditional_gaussian_fit,
     fit_dynamics,
@@ -195,3 +196,20 @@ def test_ridge_bounds_the_gain_along_a_direction_the_samples_barely_excite():
     assert largest_mode(1e-3) == pytest.approx(0.9, abs=0.01)  # the true system's only mode
     on_manifold = fit_dynamics(X, U, ridge=1e-3).F[0, :-1, :, :2].sum(-1)  # gain of v + w together
     torch.testing.assert_close(on_manifold, torch.full_like(on_manifold, 0.9), atol=0.01, rtol=0)
+
+
+def test_spectral_radius_and_the_state_entry_that_feeds_the_growing_mode():
+    """F_x = [[0.9, 3], [0, 2]]: the mode with eigenvalue 2 shows in both entries but is fed
+    by entry 1 alone (the left eigenvector), which is the entry to blame."""
+    F = torch.zeros(2, 3, 2, 3, dtype=torch.float64)
+    F[..., 0, 0] = 0.9
+    F[0, 1, :, :2] = torch.tensor([[0.9, 3.0], [0.0, 2.0]], dtype=torch.float64)
+    zeros = torch.zeros(2, 3, 2, dtype=torch.float64)
+    dynamics = LinearGaussianDynamics(
+        F=F, f=zeros, D=torch.zeros(2, 3, 2, 2, dtype=torch.float64), x0mu=zeros[:, 0], x0sigma=F[:, 0, :, :2]
+    )
+    radius = dynamics.spectral_radius()
+    assert radius.shape == (2, 3)
+    assert radius[0].tolist() == pytest.approx([0.9, 2.0, 0.9])
+    assert radius[1].tolist() == pytest.approx([0.9] * 3)
+    assert dynamics.dominant_mode(0, 1) == 1

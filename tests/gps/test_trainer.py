@@ -221,6 +221,33 @@ def test_eta_at_its_cap_raises_with_the_last_kl():
         trainer.step()
 
 
+def test_a_c_step_failure_describes_the_fitted_dynamics_that_blew_up(monkeypatch):
+    """A fit whose joint-velocity entry grows 30x a step (as a contact's fit carried to a
+    condition without the contact did on the drawer) leaves no eta with a PD Q_uu; the error
+    names the condition and says how fast, and from which state entry, the fit blows up."""
+    fit, fits = trainer_module.fit_dynamics, []
+
+    def unstable_from_the_second_fit(*args, **kwargs):
+        dynamics = fit(*args, **kwargs)
+        fits.append(dynamics)
+        if len(fits) == 1:
+            return dynamics
+        F = dynamics.F.clone()
+        F[1, 5:-1, 3, 3] = 30.0  # qd0 of condition 1 feeds itself from step 5 on
+        return dataclasses.replace(dynamics, F=F)
+
+    monkeypatch.setattr(trainer_module, "fit_dynamics", unstable_from_the_second_fit)
+    trainer = trainer_for(worlds=GRID[:1], sgd_steps=10, initial_sgd_steps=10)
+    trainer.step()
+    message = (
+        r"positive-definite Q_uu.* grow by up to 30x a step \(step \d+, fed mostly by qd0; above 1.05 "
+        r"at \d+ of 19 steps\) \[world=three_link/reach_red, condition=1, iteration=1\]"
+    )
+    with pytest.raises(NumericalError, match=message):
+        trainer.step()
+    assert fits[0].spectral_radius()[1, 5:-1].max() < 2  # the fit as it came: no such growth
+
+
 def test_fine_tuning_starts_from_the_composed_policy():
     """init_from_policy: the first samples come from the trained modules, not from scratch."""
     teacher = trainer_for(worlds=GRID[:1])

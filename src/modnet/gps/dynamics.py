@@ -80,6 +80,25 @@ class LinearGaussianDynamics:
     def horizon(self) -> int:
         return self.F.shape[1]
 
+    def spectral_radius(self) -> torch.Tensor:
+        """``[M, T]``: the largest ``|eigenvalue|`` of each step's state block ``F_x``.
+
+        Above 1 the fit says a deviation grows from that step to the next, whatever the
+        actions; an arm under damping stays near 1. A fit far above it (a contact's linear
+        fit carried to a condition that never made the contact) makes every controller's
+        predicted state covariance explode, and with it the C-step's KL.
+        """
+        F_x = self.F[..., : self.state_dim].to(torch.float64)
+        return torch.linalg.eigvals(F_x).abs().amax(dim=-1)
+
+    def dominant_mode(self, condition: int, step: int) -> int:
+        """The state entry that feeds the mode with the largest ``|eigenvalue|`` of ``F_x`` at
+        ``(condition, step)``: the largest entry of its left eigenvector, so the entry whose
+        value the fit amplifies (the right eigenvector says where the mode shows)."""
+        F_x = self.F[condition, step, :, : self.state_dim].to(torch.float64)
+        values, vectors = torch.linalg.eig(F_x.T)
+        return int(vectors[:, values.abs().argmax()].abs().argmax())
+
 
 class NIWPrior(NamedTuple):
     """Normal-inverse-Wishart prior over a joint Gaussian: mean ``mu0 [..., D]`` with

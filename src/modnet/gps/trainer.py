@@ -443,30 +443,53 @@ class GPSTrainer:
         actual = before - laplace_cost(cur.gains, cur.dynamics, cur.cost)
         state.step_mult = adapt_step_mult(state.step_mult, predicted, actual, self.config.lqr())
 
+    @staticmethod
+    def _with_dynamics_note(error: NumericalError, state: WorldState) -> NumericalError:
+        """``error`` with the failing condition's fitted dynamics described: how fast they let
+        a deviation grow and in which state entry. A C-step that cannot meet its KL bound or
+        keep ``Q_uu`` PD at any eta usually has dynamics that blow up (radius well above 1)."""
+        m = error.condition
+        if m is None or state.current is None:
+            return error
+        dynamics = state.current.dynamics
+        radius = dynamics.spectral_radius()[m, :-1]  # the last step has no successor
+        t = int(radius.argmax())
+        label = state.sampler.world.state_labels[dynamics.dominant_mode(m, t)]
+        note = (
+            f"; the fitted dynamics of this condition let a deviation grow by up to "
+            f"{float(radius[t]):.3g}x a step (step {t}, fed mostly by {label}; above 1.05 at "
+            f"{int((radius > 1.05).sum())} of {radius.numel()} steps)"
+        )
+        return NumericalError(error.reason + note, world=error.world, condition=m, iteration=error.iteration)
+
     def _c_step(self, state: WorldState, cost: QuadraticCost, prev: LinearGaussianGains, omega=0.0) -> None:
         config = self.config.lqr()
         config.omega = omega
         with self._timed("lqr"):
-            result = c_step(
-                cost,
-                state.current.dynamics,
-                prev,
-                step_mult=state.step_mult,
-                eta=state.eta,
-                config=config,
-                world=state.name,
-                iteration=self.iteration,
-            )
+            try:
+                result = c_step(
+                    cost,
+                    state.current.dynamics,
+                    prev,
+                    step_mult=state.step_mult,
+                    eta=state.eta,
+                    config=config,
+                    world=state.name,
+                    iteration=self.iteration,
+                )
+            except NumericalError as err:
+                raise self._with_dynamics_note(err, state) from err
         at_cap = result.eta >= config.max_eta * (1 - 1e-6)
         if bool(at_cap.any()):
             m = int(at_cap.nonzero()[0, 0])
-            raise NumericalError(
+            error = NumericalError(
                 f"eta reached its cap {config.max_eta:g} without meeting the KL target "
                 f"(last KL {float(result.kl[m]):.4g}, target {float(result.kl_target[m]):.4g})",
                 world=state.name,
                 condition=m,
                 iteration=self.iteration,
             )
+            raise self._with_dynamics_note(error, state)
         state.eta = result.eta
         state.controller.set_gains(result.gains)
         state.diagnostics.update(
