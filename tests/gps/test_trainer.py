@@ -246,6 +246,10 @@ def test_a_c_step_failure_describes_the_fitted_dynamics_that_blew_up(monkeypatch
     with pytest.raises(NumericalError, match=message):
         trainer.step()
     assert fits[0].spectral_radius()[1, 5:-1].max() < 2  # the fit as it came: no such growth
+    state = trainer.states["three_link/reach_red"]
+    state.current.dynamics.F[1, 7, 0, 0] = float("nan")
+    nan_error = NumericalError("LQR K contains 1 NaN", world=state.name, condition=1, iteration=1)
+    assert GPSTrainer._with_dynamics_note(nan_error, state) is nan_error  # no note from a NaN fit
 
 
 def test_fine_tuning_starts_from_the_composed_policy():

@@ -449,8 +449,8 @@ class GPSTrainer:
         a deviation grow and in which state entry. A C-step that cannot meet its KL bound or
         keep ``Q_uu`` PD at any eta usually has dynamics that blow up (radius well above 1)."""
         m = error.condition
-        if m is None or state.current is None:
-            return error
+        if m is None or state.current is None or not bool(state.current.dynamics.F[m].isfinite().all()):
+            return error  # a NaN in the fit is its own message
         dynamics = state.current.dynamics
         radius = dynamics.spectral_radius()[m, :-1]  # the last step has no successor
         t = int(radius.argmax())
