@@ -120,16 +120,20 @@ class World:
 
     @property
     def state_labels(self) -> tuple[str, ...]:
-        """A name for each entry of the state ``[robot_state, task_state]``, for messages.
+        """A name for each entry of the state ``[robot_state, task_state]``, for messages: the
+        sensor it is read from (as :func:`_compose` names them), with its axis for 3-vectors.
 
         Examples:
-            >>> get_world("three_link", "push").state_labels[:7]
-            ('q0', 'q1', 'q2', 'qd0', 'qd1', 'qd2', 'ee_pos_x')
+            >>> get_world("three_link", "push").state_labels[2:8]
+            ('q_joint2', 'qd_joint0', 'qd_joint1', 'qd_joint2', 'ee_pos_x', 'ee_pos_y')
         """
-        n = self.robot.n_joints
-        robot = [f"q{i}" for i in range(n)] + [f"qd{i}" for i in range(n)]
-        task = [f"{name}_{kind}_{axis}" for name, kind in self.task.observables for axis in "xy"]
-        return (*robot, *task)
+        m = self.model
+        labels = []
+        for index in (*self.robot_index, *self.task_index):
+            sensor = int(np.searchsorted(m.sensor_adr, index, side="right")) - 1
+            name, offset = m.sensor(sensor).name, int(index - m.sensor_adr[sensor])
+            labels.append(name if m.sensor_dim[sensor] == 1 else f"{name}_{'xyz'[offset]}")
+        return tuple(labels)
 
     @property
     def param_dim(self) -> int:

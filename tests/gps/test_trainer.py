@@ -233,14 +233,14 @@ def test_a_c_step_failure_describes_the_fitted_dynamics_that_blew_up(monkeypatch
         if len(fits) == 1:
             return dynamics
         F = dynamics.F.clone()
-        F[1, 5:-1, 3, 3] = 30.0  # qd0 of condition 1 feeds itself from step 5 on
+        F[1, 5:-1, 3, 3] = 30.0  # qd_joint0 of condition 1 feeds itself from step 5 on
         return dataclasses.replace(dynamics, F=F)
 
     monkeypatch.setattr(trainer_module, "fit_dynamics", unstable_from_the_second_fit)
     trainer = trainer_for(worlds=GRID[:1], sgd_steps=10, initial_sgd_steps=10)
     trainer.step()
     message = (
-        r"positive-definite Q_uu.* grow by up to 30x a step \(step \d+, fed mostly by qd0; above 1.05 "
+        r"positive-definite Q_uu.* grow by up to 30x a step \(step \d+, fed mostly by qd_joint0; above 1.05 "
         r"at \d+ of 19 steps\) \[world=three_link/reach_red, condition=1, iteration=1\]"
     )
     with pytest.raises(NumericalError, match=message):
