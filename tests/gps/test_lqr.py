@@ -120,7 +120,7 @@ def test_small_kl_budget_is_met_within_tolerance(kl_step):
     target = kl_step * step_mult * T
     torch.testing.assert_close(result.kl_target, target)
     assert bool(((result.kl - target).abs() < 0.1 * target).all()), (result.kl, target)
-    assert bool(result.converged.all())
+    assert bool(result.converged.all()) and not bool(result.at_cap.any())
     # The KL reported is the KL of the returned controller.
     again = kl_divergence(result.gains, prev, lqr_forward(result.gains, dynamics))
     torch.testing.assert_close(again, result.kl)
@@ -131,6 +131,21 @@ def test_small_kl_budget_is_met_within_tolerance(kl_step):
         cost, dynamics, prev, step_mult=step_mult, eta=result.eta, config=LQRConfig(kl_step=kl_step)
     )
     assert warm.iterations == 1
+
+
+@pytest.mark.parametrize("max_eta", [1e-3, 7.3e-3])
+def test_a_kl_target_no_allowed_eta_meets_ends_at_the_cap(max_eta):
+    """The search for eta stops once its bracket has collapsed against ``max_eta``, which it
+    reaches from below in geometric steps: eta then ends within the collapse tolerance of
+    the cap, not on it, and the result still says that it is at the cap."""
+    cost, dynamics, _ = make_problem(noise=1e-3)
+    config = LQRConfig(kl_step=1e-9, initial_eta=1e-5, max_eta=max_eta)
+    result = solve_kl_constrained_lqr(cost, dynamics, broad_prev(), config=config)
+    assert bool((result.kl > result.kl_target).all()) and not bool(result.converged.any())
+    assert bool(result.at_cap.all()), (result.eta, max_eta)
+    assert bool((result.eta > 0.99 * max_eta).all())
+    roomy = solve_kl_constrained_lqr(cost, dynamics, broad_prev(), config=LQRConfig(kl_step=0.5))
+    assert not bool(roomy.at_cap.any())
 
 
 def test_kl_closed_form_matches_distribution_kl_and_monte_carlo():

@@ -239,9 +239,10 @@ def test_a_c_step_failure_describes_the_fitted_dynamics_that_blew_up(monkeypatch
     monkeypatch.setattr(trainer_module, "fit_dynamics", unstable_from_the_second_fit)
     trainer = trainer_for(worlds=GRID[:1], sgd_steps=10, initial_sgd_steps=10)
     trainer.step()
-    message = (
-        r"positive-definite Q_uu.* grow by up to 30x a step \(step \d+, fed mostly by qd_joint0; above 1.05 "
-        r"at \d+ of 19 steps\) \[world=three_link/reach_red, condition=1, iteration=1\]"
+    message = (  # which of the two the C-step hits first depends on rounding (it differs by CPU)
+        r"(positive-definite Q_uu|eta reached its cap).* grow by up to 30x a step "
+        r"\(step \d+, fed mostly by qd_joint0; above 1.05 at \d+ of 19 steps\) "
+        r"\[world=three_link/reach_red, condition=1, iteration=1\]"
     )
     with pytest.raises(NumericalError, match=message):
         trainer.step()

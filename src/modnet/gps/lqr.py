@@ -117,7 +117,8 @@ class LQRResult:
     """Outcome of the C-step, per condition ``[M]`` unless noted.
 
     ``converged``: ``|KL - target| < tol * target``, or KL below target with eta at its
-    lower bound (the constraint is inactive there).
+    lower bound (the constraint is inactive there).  ``at_cap``: not converged, with eta's
+    bracket collapsed at ``max_eta``: no eta the search allows brings the KL down to its target.
     """
 
     gains: LinearGaussianGains
@@ -127,6 +128,7 @@ class LQRResult:
     expected_cost: torch.Tensor
     marginals: StateActionMarginals
     converged: torch.Tensor
+    at_cap: torch.Tensor
     iterations: int
 
 
@@ -428,6 +430,10 @@ def kl_divergence(
 
 
 # --------------------------------------------------------------------------- C-step
+#: eta's search stops when its bracket ``[lo, hi]`` is narrower than this, relative to ``lo``
+_COLLAPSED = 1e-3
+
+
 def solve_kl_constrained_lqr(
     cost: QuadraticCost,
     dynamics: LinearGaussianDynamics,
@@ -469,7 +475,7 @@ def solve_kl_constrained_lqr(
         kl = kl_divergence(backward.gains, prev, marginals)
         excess = kl - target
         within = excess.abs() < config.kl_tolerance * target
-        collapsed = hi <= lo * (1 + 1e-3)
+        collapsed = hi <= lo * (1 + _COLLAPSED)
         done = done | within | collapsed
         if bool(done.all()) or iterations == config.max_iterations:
             break
@@ -482,8 +488,9 @@ def solve_kl_constrained_lqr(
         )
         eta_t = torch.where(done, eta_t, proposal)
     # Inactive constraint: KL stays below target all the way down to min_eta.
-    inactive = (excess < 0) & (lo <= config.min_eta) & (hi <= lo * (1 + 1e-3))
+    inactive = (excess < 0) & (lo <= config.min_eta) & (hi <= lo * (1 + _COLLAPSED))
     converged = (excess.abs() < config.kl_tolerance * target) | inactive
+    at_cap = ~converged & (eta_t * (1 + _COLLAPSED) >= config.max_eta)
     if not bool(converged.all()):
         log.warning(
             "KL search did not converge for conditions %s (KL %s, target %s, eta %s)%s",
@@ -499,6 +506,7 @@ def solve_kl_constrained_lqr(
         expected_cost=expected_cost(marginals, cost),
         marginals=marginals,
         converged=converged,
+        at_cap=at_cap,
         iterations=iterations,
     )
 

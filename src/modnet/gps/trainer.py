@@ -479,9 +479,8 @@ class GPSTrainer:
                 )
             except NumericalError as err:
                 raise self._with_dynamics_note(err, state) from err
-        at_cap = result.eta >= config.max_eta * (1 - 1e-6)
-        if bool(at_cap.any()):
-            m = int(at_cap.nonzero()[0, 0])
+        if bool(result.at_cap.any()):
+            m = int(result.at_cap.nonzero()[0, 0])
             error = NumericalError(
                 f"eta reached its cap {config.max_eta:g} without meeting the KL target "
                 f"(last KL {float(result.kl[m]):.4g}, target {float(result.kl_target[m]):.4g})",
