@@ -173,15 +173,18 @@ def test_checkpoint_state_resumes_exactly(per_condition):
     assert resumed.iteration == 1 and resumed.history == original.history[:1]
     first = float(state["seconds"])
     assert resumed.seconds == first > 0  # the wall time of the iteration before the save
+    resumed_samples = {"trajectories": 12, "env_steps": 12 * 20}  # 4 conditions x 3 samples
+    assert resumed.samples == resumed_samples
     assert resumed.step() == expected
-    assert resumed.seconds > first
+    assert resumed.seconds > first and resumed.samples == original.samples
     with pytest.raises(ValueError, match="checkpoint trains worlds"):
         trainer_for(worlds=GRID[1:2]).load_state_dict(state)
-    # a checkpoint from before the trainer kept its wall time still resumes, from 0 s
-    older = {k: v for k, v in state.items() if k != "seconds"}
+    # a checkpoint from before the trainer kept its wall time and sample count still resumes,
+    # from 0 s and the samples of its finished iterations
+    older = {k: v for k, v in state.items() if k not in ("seconds", "drawn")}
     legacy = trainer_for(**options)
     legacy.load_state_dict(older)
-    assert legacy.iteration == 1 and legacy.seconds == 0.0
+    assert legacy.iteration == 1 and legacy.seconds == 0.0 and legacy.samples == resumed_samples
 
 
 def test_planted_nan_names_world_condition_and_iteration(monkeypatch):
@@ -246,6 +249,8 @@ def test_a_c_step_failure_describes_the_fitted_dynamics_that_blew_up(monkeypatch
     )
     with pytest.raises(NumericalError, match=message):
         trainer.step()
+    assert trainer.iteration == 1  # the failed iteration did not finish, but its samples were drawn
+    assert trainer.samples == {"trajectories": 2 * 12, "env_steps": 2 * 12 * 20}  # 4 conditions x 3
     assert fits[0].spectral_radius()[1, 5:-1].max() < 2  # the fit as it came: no such growth
     state = trainer.states["three_link/reach_red"]
     state.current.dynamics.F[1, 7, 0, 0] = float("nan")

@@ -225,6 +225,8 @@ class GPSTrainer:
         self.pixels = pixels
         self.iteration = 0
         self.seconds = 0.0  # wall time of every iteration so far, across resumes
+        #: environment samples drawn so far, across resumes, including an iteration that failed
+        self.drawn = {"trajectories": 0, "env_steps": 0}
         self.timings: dict[str, float] = defaultdict(float)
         self.states = {state.name: state for state in map(lambda w: self._init_world(*w), worlds)}
         self.loss = PolicyRegressionLoss(bank)
@@ -345,6 +347,9 @@ class GPSTrainer:
             self.bank.eval()  # no dropout when a composed policy acts
             samples = state.sampler.sample(policy or state.controller)
             self.bank.train()
+        trajectories = state.sampler.env.batch_size[0]
+        self.drawn["trajectories"] += trajectories
+        self.drawn["env_steps"] += trajectories * state.sampler.horizon
         for name, value in (("sampled states", samples.X), ("sampled actions", samples.U)):
             # condition-major [M, ...], so the error names the condition
             check_finite(name, value, world=state.name, iteration=self.iteration)
@@ -611,12 +616,9 @@ class GPSTrainer:
     # --- reporting ----------------------------------------------------------------------------------
     @property
     def samples(self) -> dict[str, int]:
-        """Environment samples drawn so far over every world: trajectories and control steps."""
-        samplers = [s.sampler for s in self.states.values()]
-        return {
-            "trajectories": self.iteration * sum(s.env.batch_size[0] for s in samplers),
-            "env_steps": self.iteration * sum(s.env.batch_size[0] * s.horizon for s in samplers),
-        }
+        """Environment samples drawn so far over every world: trajectories and control steps,
+        counting those of an iteration that stopped on a numerical error."""
+        return dict(self.drawn)
 
     def _diagnose(self, state: WorldState) -> dict[str, float]:
         """The iteration's figures; the prediction once, for the controllers the last C-step left."""
@@ -632,6 +634,7 @@ class GPSTrainer:
         return {
             "iteration": self.iteration,
             "seconds": self.seconds,
+            "drawn": dict(self.drawn),
             "bank": self.bank.state_dict(),
             "optimizer": self.optimizer.state_dict(),
             "torch_rng": torch.get_rng_state(),
@@ -658,6 +661,12 @@ class GPSTrainer:
         torch.set_rng_state(state["torch_rng"])
         self.iteration = int(state["iteration"])
         self.seconds = float(state.get("seconds", 0.0))  # checkpoints before it was kept: unknown
+        samplers = [s.sampler for s in self.states.values()]
+        self.drawn = {  # checkpoints before it was kept: every finished iteration's samples
+            "trajectories": self.iteration * sum(s.env.batch_size[0] for s in samplers),
+            "env_steps": self.iteration * sum(s.env.batch_size[0] * s.horizon for s in samplers),
+        }
+        self.drawn.update({k: int(v) for k, v in state.get("drawn", {}).items()})
         self.history = list(state["history"])
         for name, world_state in state["worlds"].items():
             _load_world_state(self.states[name], world_state)
