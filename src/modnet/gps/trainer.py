@@ -225,7 +225,8 @@ class GPSTrainer:
         self.pixels = pixels
         self.iteration = 0
         self.seconds = 0.0  # wall time of every iteration so far, across resumes
-        #: environment samples drawn so far, across resumes, including an iteration that failed
+        #: environment samples drawn so far (saved in checkpoints), including those of an iteration
+        #: that stopped on a numerical error; a killed iteration's are drawn again after a resume
         self.drawn = {"trajectories": 0, "env_steps": 0}
         self.timings: dict[str, float] = defaultdict(float)
         self.states = {state.name: state for state in map(lambda w: self._init_world(*w), worlds)}
@@ -662,11 +663,11 @@ class GPSTrainer:
         self.iteration = int(state["iteration"])
         self.seconds = float(state.get("seconds", 0.0))  # checkpoints before it was kept: unknown
         samplers = [s.sampler for s in self.states.values()]
-        self.drawn = {  # checkpoints before it was kept: every finished iteration's samples
+        finished = {  # checkpoints before the count was kept: every finished iteration's samples
             "trajectories": self.iteration * sum(s.env.batch_size[0] for s in samplers),
             "env_steps": self.iteration * sum(s.env.batch_size[0] * s.horizon for s in samplers),
         }
-        self.drawn.update({k: int(v) for k, v in state.get("drawn", {}).items()})
+        self.drawn = {key: int(value) for key, value in state.get("drawn", finished).items()}
         self.history = list(state["history"])
         for name, world_state in state["worlds"].items():
             _load_world_state(self.states[name], world_state)
