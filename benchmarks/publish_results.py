@@ -6,12 +6,20 @@
     python benchmarks/publish_results.py lowo SWEEP_DIR --experiment color_reach_state_lowo
     # the same held-out world trained by BADMM and by MDGPS
     python benchmarks/publish_results.py algorithms BADMM_DIR MDGPS_DIR --experiment badmm_vs_mdgps
+    # published seeds of one zero-shot experiment, drawn beside the paper's table
+    python benchmarks/publish_results.py figure docs/results/color_reach_32conditions_clip_targets*.json \
+        --experiment color_reach_32conditions_clip_targets
 
 Each writes ``docs/results/<experiment>.json`` (and, for a sweep, the heatmap
 ``docs/<experiment>.png``; for a fine-tuning run, its curves ``docs/<experiment>_finetune.png``)
 from the jobs' own ``results.json`` files, with the command that produced them (read from
 Hydra's ``.hydra/overrides.yaml``), the environment samples, the wall time and the code's commit, and
 the paper's numbers where the paper has that experiment.  The last line is the written JSON.
+
+``figure`` reads published JSON files instead of run directories (the seeds of one experiment:
+the same command but for ``seed=``) and draws ``docs/<experiment>_vs_paper.png``: at the 4 test
+positions the paper's bars beside ours (each seed a dot, the bar their mean), and on the random
+positions each seed's mean with its 95% interval.  Its last line is a JSON summary of what it drew.
 """
 
 from __future__ import annotations
@@ -23,6 +31,8 @@ from pathlib import Path
 
 import numpy as np
 import yaml
+from matplotlib.figure import Figure
+from matplotlib.ticker import FormatStrFormatter, LogLocator, NullFormatter
 
 from modnet.aggregate import collect, write_heatmap
 from modnet.files import write_atomically
@@ -264,13 +274,163 @@ def algorithms(run_dirs: list[Path], experiment: str) -> dict:
     return {"experiment": experiment, "runs": runs}
 
 
+#: command-line options that change how a job runs, not what it computes (seed aside, see figure)
+_SAME_EXPERIMENT_IGNORES = ("seed=", "threads=", "logger=", "hydra.", "resume=")
+
+
+def _experiment_of(command: str) -> str:
+    """A published command without its seed and without options that do not change the numbers."""
+    return " ".join(o for o in command.split() if not o.startswith(_SAME_EXPERIMENT_IGNORES))
+
+
+def _log_scale(ax) -> None:
+    """A log y axis labelled in plain numbers (0.1, 0.2, 0.5, 1), not powers of ten."""
+    ax.set_yscale("log")
+    ax.yaxis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))
+    ax.yaxis.set_major_formatter(FormatStrFormatter("%g"))
+    ax.yaxis.set_minor_formatter(NullFormatter())
+
+
+def paper_figure(published: list[dict]) -> tuple[Figure, dict]:
+    """The seeds of one zero-shot experiment (published JSON, see :func:`zero_shot`) beside the
+    paper's table: a figure and a summary of what it shows.
+
+    Left, the paper's 4 test positions and their mean: the paper's bars (hatched) beside ours for
+    the composed modules, the random network and the wrong task module; ours are the mean over
+    the seeds, each seed a dot.  Right, where the runs scored random positions: each seed's mean
+    with its 95% confidence interval, the random network's and the wrong task module's means,
+    and the paper's mean over its test positions as a line.  Raises ``ValueError`` for runs of
+    different experiments, a repeated seed, or an experiment the paper has no table for.
+    """
+    if not published:
+        raise ValueError("no published results to draw")
+    first = published[0]
+    experiments = {_experiment_of(p["command"]) for p in published}
+    if len(experiments) > 1:
+        raise ValueError(f"the runs are not one experiment at several seeds: {sorted(experiments)}")
+    seeds = [p["seed"] for p in published]
+    if len(set(seeds)) < len(seeds):
+        raise ValueError(f"a seed is given twice: {seeds}")
+    if "paper" not in first:
+        raise ValueError(
+            f"the paper has no table for {first['universe']} holding out {first['holdout']}; "
+            f"it has: {', '.join(f'{u} ({get_universe(u).holdout} held out)' for u in PAPER)}"
+        )
+    published = sorted(published, key=lambda p: p["seed"])
+    paper = first["paper"]
+    keys = {"ours": "composed", "random": "random", "wrong_task": "wrong task"}
+    colours = {"ours": "tab:blue", "random": "tab:gray", "wrong_task": "tab:orange"}
+    n = len(paper["ours"])
+    here = {
+        key: np.array([[pos[key] for pos in p["positions"]] for p in published], dtype=float) for key in keys
+    }  # [seeds, positions]; NaN where a run had no wrong task module
+    here = {key: np.concatenate([v, v.mean(1, keepdims=True)], axis=1) for key, v in here.items()}
+    theirs = {key: np.array([*paper[key], np.mean(paper[key])]) for key in keys}
+
+    extended = [p for p in published if p.get("extended")]
+    fig = Figure(figsize=(11 if extended else 7.5, 4.4), layout="constrained")
+    axes = fig.subplots(1, 2 if extended else 1, squeeze=False, width_ratios=[2, 1] if extended else None)[0]
+    ax = axes[0]
+    x = np.arange(n + 1)
+    width = 0.8 / (2 * len(keys))
+    for i, key in enumerate(keys):
+        left = x + (2 * i - len(keys) + 0.5) * width
+        ax.bar(
+            left,
+            theirs[key],
+            width,
+            color="white",
+            edgecolor=colours[key],
+            hatch="///",
+            label=f"{keys[key]}, paper",
+        )
+        ax.bar(left + width, np.nanmean(here[key], 0), width, color=colours[key], label=f"{keys[key]}, here")
+        if len(published) > 1:
+            for row in here[key]:
+                ax.plot(left + width, row, ls="none", marker=".", ms=4, color="k")
+    if all(pos.get("start") is not None for p in published for pos in p["positions"]):  # the scene's own
+        start = np.array([pos["start"] for pos in first["positions"]])
+        ax.hlines([*start, start.mean()], x - 0.42, x + 0.42, colors="k", lw=1.2, label="at start")
+    ax.axhline(first["success_distance"], color="k", lw=0.8, ls="--", label="success distance")
+    ax.set_xticks(x, [str(i + 1) for i in range(n)] + ["mean"])
+    ax.set_xlabel("the paper's test position")
+    ax.set_ylabel("distance over the last 5 steps")
+    _log_scale(ax)  # the composed bars are a tenth of the baselines': a ratio reads as a height
+    drawn = f"{len(published)} seeds (dots)" if len(published) > 1 else f"seed {first['seed']}"
+    ax.set_title(f"{first['holdout']} held out, {drawn}")
+    ax.legend(fontsize="x-small", ncol=4, loc="upper center", bbox_to_anchor=(0.5, -0.17))
+
+    if extended:
+        ax = axes[1]
+        xs = np.arange(len(extended))
+        means = np.array([p["extended"]["ours_mean"] for p in extended])
+        ci = np.array([p["extended"]["ours_ci95"] for p in extended])
+        ax.errorbar(
+            xs,
+            means,
+            yerr=[means - ci[:, 0], ci[:, 1] - means],
+            fmt="o",
+            color=colours["ours"],
+            capsize=3,
+            label="composed (95% interval)",
+        )
+        for key, name in (("random", "random_mean"), ("wrong_task", "wrong_task_mean")):
+            ax.plot(
+                xs,
+                [p["extended"][name] or np.nan for p in extended],
+                ls="none",
+                marker="s",
+                color=colours[key],
+                label=f"{keys[key]} (mean)",
+            )
+        ax.axhline(
+            theirs["ours"][-1], color=colours["ours"], lw=0.8, ls=":", label="composed, paper (mean of its 4)"
+        )
+        ax.axhline(first["success_distance"], color="k", lw=0.8, ls="--")
+        ax.set_xticks(xs, [str(p["seed"]) for p in extended])
+        ax.set_xlim(-0.5, len(extended) - 0.5)
+        _log_scale(ax)
+        ax.set_xlabel("seed")
+        ax.set_title(f"{extended[0]['extended']['n']} random positions")
+        ax.legend(fontsize="x-small", ncol=2, loc="upper center", bbox_to_anchor=(0.5, -0.17))
+    fig.suptitle(first["command"].replace(f"seed={first['seed']}", "seed=S"), fontsize="small")
+
+    summary = {
+        "universe": first["universe"],
+        "holdout": first["holdout"],
+        "seeds": [p["seed"] for p in published],
+        "positions_mean_over_seeds": {key: [_round(v) for v in np.nanmean(here[key], 0)] for key in keys},
+        "at_or_below_paper": [int((p_ours <= paper["ours"]).sum()) for p_ours in here["ours"][:, :n]],
+        "ratio_to_random": [_round(r) for r in here["ours"][:, n] / here["random"][:, n]],
+        "random_positions_mean": [p["extended"]["ours_mean"] for p in extended],
+        "paper": {key: [_round(v) for v in theirs[key]] for key in keys},
+    }
+    return fig, summary
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("kind", choices=["zero-shot", "lowo", "algorithms"])
-    parser.add_argument("paths", type=Path, nargs="+", help="run directories (a sweep directory for lowo)")
+    parser.add_argument("kind", choices=["zero-shot", "lowo", "algorithms", "figure"])
+    parser.add_argument(
+        "paths",
+        type=Path,
+        nargs="+",
+        help="run directories (a sweep directory for lowo, JSON files for figure)",
+    )
     parser.add_argument("--experiment", required=True, help="the name under docs/results/")
     parser.add_argument("--docs", type=Path, default=DOCS, help="the docs directory to write into")
     args = parser.parse_args()
+    if args.kind == "figure":
+        try:
+            fig, summary = paper_figure([json.loads(path.read_text()) for path in args.paths])
+        except KeyError as error:
+            parser.error(f"figure: a file is not a published zero-shot result (it has no {error})")
+        except (OSError, ValueError) as error:
+            parser.error(f"figure: {error}")
+        path = args.docs / f"{args.experiment}_vs_paper.png"
+        write_atomically(path, lambda tmp: fig.savefig(tmp, format="png", dpi=120))
+        print(json.dumps({"figure": str(path), **summary}))
+        return
     if args.kind == "zero-shot":
         data = zero_shot(args.paths[0], args.experiment, args.docs)
     elif args.kind == "lowo":

@@ -108,8 +108,12 @@ def test_gps_single_world_traces_where_the_object_goes():
 def single_world(*options: str) -> tuple[dict, list[float]]:
     """``gps_single_world.py``'s JSON figures and BADMM's policy weight (mean nu) per iteration."""
     out = subprocess.run(
-        [sys.executable, "gps_single_world.py", *options], capture_output=True, text=True, timeout=600,
-        check=True, cwd=BENCHMARKS,
+        [sys.executable, "gps_single_world.py", *options],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        check=True,
+        cwd=BENCHMARKS,
     ).stdout.splitlines()
     nu = [float(line.split("nu=")[1].split()[0]) for line in out if line.startswith("iteration")]
     return json.loads(out[-1]), nu
@@ -118,7 +122,10 @@ def single_world(*options: str) -> tuple[dict, list[float]]:
 def single_world_refusal(*options: str) -> str:
     """What ``gps_single_world.py`` says when it refuses ``options`` (before any training)."""
     refused = subprocess.run(
-        [sys.executable, "gps_single_world.py", *options], capture_output=True, text=True, timeout=120,
+        [sys.executable, "gps_single_world.py", *options],
+        capture_output=True,
+        text=True,
+        timeout=120,
         cwd=BENCHMARKS,
     )
     assert refused.returncode != 0
@@ -275,3 +282,87 @@ def test_action_gap_splits_the_gap_by_part_of_the_episode_and_at_the_torque_limi
     assert figures["controller_distance"] == 0.25
     beyond = action_gap.gap_figures(asked, network + 2.5, torch.tensor([[0.25]]))
     assert beyond["gap_by_part"]["first_fifth"] == pytest.approx(2.0)  # (2, 0) against (2, 2)
+
+
+def published_run(seed: int, ours: list[float], command_extra: str = "") -> dict:
+    """A docs/results JSON of one color_reach seed, as publish_results.py zero-shot writes it."""
+    random, wrong = [1.8, 1.6, 1.1, 0.8], [0.4, 1.0, 0.3, 0.9]
+    return {
+        "universe": "color_reach",
+        "holdout": "four_link/reach_black",
+        "seed": seed,
+        "command": f"python run.py universe=color_reach eval.random_conditions=20{command_extra} seed={seed}",
+        "success_distance": 0.1,
+        "positions": [
+            {"ours": o, "random": r, "wrong_task": w, "start": r}
+            for o, r, w in zip(ours, random, wrong, strict=True)
+        ],
+        "paper": {
+            "universe": "color_reach",
+            "ours": [0.12, 0.28, 0.21, 0.08],
+            "random": [1.16, 1.29, 1.35, 1.29],
+            "wrong_task": [2.34, 1.75, 1.65, 2.41],
+        },
+        "extended": {
+            "n": 20,
+            "ours_mean": 0.2,
+            "ours_ci95": [0.1, 0.3],
+            "random_mean": 1.3,
+            "wrong_task_mean": 0.5,
+        },
+    }
+
+
+def test_paper_figure_draws_each_seed_beside_the_papers_table_and_counts_the_positions_at_or_below_it():
+    publish = load_benchmark("publish_results")
+    seeds = [published_run(1, [0.1, 0.1, 0.05, 0.08]), published_run(0, [0.1, 0.3, 0.2, 0.1], " threads=2")]
+    fig, summary = publish.paper_figure(seeds)
+    assert summary["seeds"] == [0, 1]  # sorted; threads= does not make another experiment
+    assert summary["at_or_below_paper"] == [2, 4]  # seed 0 misses positions 2 and 4 (0.3 > 0.28, 0.1 > 0.08)
+    assert summary["positions_mean_over_seeds"]["ours"] == pytest.approx(
+        [0.1, 0.2, 0.125, 0.09, 0.12875], abs=1e-4
+    )
+    assert summary["ratio_to_random"] == pytest.approx([0.175 / 1.325, 0.0825 / 1.325], abs=1e-4)
+    assert summary["paper"]["ours"][-1] == 0.1725
+    left, right = fig.axes
+    heights = [bar.get_height() for bar in left.patches]
+    # the paper's composed bars, then ours (the mean over the seeds), per position and the mean
+    assert heights[:10] == pytest.approx([0.12, 0.28, 0.21, 0.08, 0.1725, 0.1, 0.2, 0.125, 0.09, 0.12875])
+    assert left.get_yscale() == "log" and right.get_title() == "20 random positions"
+
+
+@pytest.mark.parametrize(
+    ("runs", "message"),
+    [
+        (
+            lambda: [published_run(0, [0.1] * 4), published_run(1, [0.1] * 4, " gps.clip_targets=true")],
+            "not one",
+        ),
+        (lambda: [published_run(0, [0.1] * 4), published_run(0, [0.2] * 4)], "a seed is given twice"),
+        (
+            lambda: [{k: v for k, v in published_run(0, [0.1] * 4).items() if k != "paper"}],
+            "the paper has no table",
+        ),
+    ],
+)
+def test_paper_figure_refuses_runs_of_different_experiments_repeated_seeds_and_tables_the_paper_lacks(
+    tmp_path, runs, message
+):
+    paths = []
+    for i, run in enumerate(runs()):
+        paths.append(tmp_path / f"run{i}.json")
+        paths[-1].write_text(json.dumps(run))
+    args = ["publish_results.py", "figure", *map(str, paths), "--experiment", "x", "--docs", str(tmp_path)]
+    done = subprocess.run([sys.executable, *args], capture_output=True, text=True, cwd=BENCHMARKS)
+    assert done.returncode == 2 and message in done.stderr, done.stderr
+    assert not (tmp_path / "x_vs_paper.png").exists()
+
+
+def test_paper_figure_writes_the_png_and_ends_with_a_json_line(tmp_path):
+    path = tmp_path / "seed0.json"
+    path.write_text(json.dumps(published_run(0, [0.1, 0.3, 0.2, 0.1])))
+    figures = last_json(
+        "publish_results.py", "figure", str(path), "--experiment", "x", "--docs", str(tmp_path)
+    )
+    assert figures["figure"] == str(tmp_path / "x_vs_paper.png") and figures["at_or_below_paper"] == [2]
+    assert (tmp_path / "x_vs_paper.png").read_bytes().startswith(b"\x89PNG")
