@@ -36,6 +36,7 @@ from matplotlib.ticker import FormatStrFormatter, LogLocator, NullFormatter
 
 from modnet.aggregate import collect, write_heatmap
 from modnet.files import write_atomically
+from modnet.report import COLORS, LABELS
 from modnet.universes import get_universe
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -318,8 +319,9 @@ def paper_figure(published: list[dict]) -> tuple[Figure, dict]:
         )
     published = sorted(published, key=lambda p: p["seed"])
     paper = first["paper"]
-    keys = {"ours": "composed", "random": "random", "wrong_task": "wrong task"}
-    colours = {"ours": "tab:blue", "random": "tab:gray", "wrong_task": "tab:orange"}
+    methods = {"ours": "composed", "random": "random", "wrong_task": "wrong_task"}  # published -> run's name
+    keys = {key: LABELS[method] for key, method in methods.items()}
+    colours = {key: COLORS[method] for key, method in methods.items()}  # as in each run's zero_shot.png
     n = len(paper["ours"])
     here = {
         key: np.array([[pos[key] for pos in p["positions"]] for p in published], dtype=float) for key in keys
