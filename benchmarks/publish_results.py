@@ -275,8 +275,9 @@ def algorithms(run_dirs: list[Path], experiment: str) -> dict:
     return {"experiment": experiment, "runs": runs}
 
 
-#: command-line options that change how a job runs, not what it computes (seed aside, see figure)
-_SAME_EXPERIMENT_IGNORES = ("seed=", "threads=", "logger=", "hydra.", "resume=")
+#: command-line options that change how a job runs, not what it computes (seed aside, see figure);
+#: :func:`command` has already left out ``resume=`` and ``hydra.run.dir``
+_SAME_EXPERIMENT_IGNORES = ("seed=", "threads=", "logger=", "hydra.")
 
 
 def _experiment_of(command: str) -> str:
@@ -323,10 +324,12 @@ def paper_figure(published: list[dict]) -> tuple[Figure, dict]:
     keys = {key: LABELS[method] for key, method in methods.items()}
     colours = {key: COLORS[method] for key, method in methods.items()}  # as in each run's zero_shot.png
     n = len(paper["ours"])
-    here = {
-        key: np.array([[pos[key] for pos in p["positions"]] for p in published], dtype=float) for key in keys
-    }  # [seeds, positions]; NaN where a run had no wrong task module
-    here = {key: np.concatenate([v, v.mean(1, keepdims=True)], axis=1) for key, v in here.items()}
+    here = {  # [seeds, positions + the run's own mean]; NaN where a run had no wrong task module
+        key: np.array(
+            [[*(pos[key] for pos in p["positions"]), p["means"].get(method)] for p in published], dtype=float
+        )
+        for key, method in methods.items()
+    }
     theirs = {key: np.array([*paper[key], np.mean(paper[key])]) for key in keys}
 
     extended = [p for p in published if p.get("extended")]
