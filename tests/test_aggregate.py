@@ -2,11 +2,9 @@
 
 import json
 import math
-import subprocess
-import sys
 
 import pytest
-from test_run import ENV, ROOT, run_py
+from commands import BENCHMARKS, run_py, run_script
 
 from modnet.aggregate import AggregateError, collect, main
 
@@ -68,15 +66,7 @@ def test_a_two_job_joblib_multirun_writes_two_results_and_aggregates(tmp_path):
         "four_link/reach_black",
         "three_link/reach_red",
     }
-    aggregated = subprocess.run(
-        [sys.executable, "-m", "modnet.aggregate", str(tmp_path)],
-        cwd=ROOT,
-        env=ENV,
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
-    assert aggregated.returncode == 0, aggregated.stderr
+    main([str(tmp_path)])  # python -m modnet.aggregate SWEEP_DIR
     assert (tmp_path / "heatmap.png").exists()
     rows = (tmp_path / "heatmap.csv").read_text().splitlines()
     assert rows[0] == "robot,reach_red,reach_black"
@@ -87,10 +77,7 @@ def test_a_two_job_joblib_multirun_writes_two_results_and_aggregates(tmp_path):
     docs = tmp_path / "docs"
 
     def publish(*args):
-        done = subprocess.run(
-            [sys.executable, str(ROOT / "benchmarks" / "publish_results.py"), *args, "--docs", str(docs)],
-            cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=120,
-        )  # fmt: skip
+        done = run_script(BENCHMARKS / "publish_results.py", *args, "--docs", str(docs))
         assert done.returncode == 0, done.stderr
         return json.loads(done.stdout.splitlines()[-1])
 

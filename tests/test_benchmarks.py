@@ -4,20 +4,18 @@ import importlib.util
 import json
 import subprocess
 import sys
-from pathlib import Path
 
 import mujoco
 import numpy as np
 import pytest
 import torch
+from commands import BENCHMARKS, run_script
 from tensordict import TensorDict
 
 from modnet.bank import ModuleBank
 from modnet.evaluate import evaluation_env, rollout
 from modnet.gps.trainer import PHASES, PIXEL_ROWS_PER_PASS
 from modnet.worlds import get_world
-
-BENCHMARKS = Path(__file__).resolve().parent.parent / "benchmarks"
 
 
 def last_json(*args: str, timeout: float = 600) -> dict:
@@ -75,9 +73,8 @@ def test_policy_passes_benchmark_gives_the_trainers_outputs_at_every_pass_size()
     ],
 )
 def test_gps_iteration_benchmark_refuses_bad_input_in_one_line(args, message):
-    command = [sys.executable, "gps_iteration.py", *args]
-    done = subprocess.run(command, capture_output=True, text=True, cwd=BENCHMARKS)
-    assert done.returncode != 0 and message in done.stderr and "Traceback" not in done.stderr
+    done = run_script(BENCHMARKS / "gps_iteration.py", *args)  # an exception would end the test here
+    assert done.returncode == 2 and message in done.stderr, done.stderr
 
 
 def test_pretrain_benchmark_reports_every_vision_module_and_a_ratio_against_mj_step():
@@ -93,7 +90,7 @@ def test_pretrain_benchmark_reports_every_vision_module_and_a_ratio_against_mj_s
 def test_gps_single_world_traces_where_the_object_goes():
     """``--trace`` reads the right state slots: at step 0 every block is where its condition put it.
     (Run with the GPS code's smoothed noise and per-condition priors, which the JSON echoes.)"""
-    options = "--task push --conditions 4 --samples 2 --iterations 1 --trace".split()
+    options = "--task push --conditions 4 --samples 2 --iterations 1 --sgd-steps 20 --trace".split()
     options += ["--noise-smoothing", "2", "--dynamics-prior-per-condition"]
     figures = last_json("gps_single_world.py", *options, timeout=600)
     assert figures["noise_smoothing"] == 2.0 and figures["dynamics_prior_per_condition"] is True
@@ -121,14 +118,8 @@ def single_world(*options: str) -> tuple[dict, list[float]]:
 
 def single_world_refusal(*options: str) -> str:
     """What ``gps_single_world.py`` says when it refuses ``options`` (before any training)."""
-    refused = subprocess.run(
-        [sys.executable, "gps_single_world.py", *options],
-        capture_output=True,
-        text=True,
-        timeout=120,
-        cwd=BENCHMARKS,
-    )
-    assert refused.returncode != 0
+    refused = run_script(BENCHMARKS / "gps_single_world.py", *options)
+    assert refused.returncode == 2, refused
     return refused.stderr
 
 
@@ -144,7 +135,8 @@ def test_gps_single_world_trajectory_only_holds_the_policy_weight_at_its_floor()
 def test_gps_single_world_caps_the_policy_weight_and_scores_the_training_conditions():
     """``--max-policy-weight`` bounds BADMM's nu_t (the initial weight is lowered to it);
     ``--evaluate-on train`` scores the network at each of the world's training conditions."""
-    options = "--conditions 5 --samples 2 --iterations 2 --max-policy-weight 1e-3 --evaluate-on train"
+    options = "--conditions 5 --samples 2 --iterations 2 --sgd-steps 20"
+    options += " --max-policy-weight 1e-3 --evaluate-on train"
     figures, nu = single_world(*options.split())
     assert figures["max_policy_weight"] == 1e-3 and figures["evaluated_on"] == "train"
     assert len(figures["final_distance"]) == 5  # one per training condition, not the 4 test positions
@@ -353,8 +345,8 @@ def test_paper_figure_refuses_runs_of_different_experiments_repeated_seeds_and_t
     for i, run in enumerate(runs()):
         paths.append(tmp_path / f"run{i}.json")
         paths[-1].write_text(json.dumps(run))
-    args = ["publish_results.py", "figure", *map(str, paths), "--experiment", "x", "--docs", str(tmp_path)]
-    done = subprocess.run([sys.executable, *args], capture_output=True, text=True, cwd=BENCHMARKS)
+    args = ["figure", *map(str, paths), "--experiment", "x", "--docs", str(tmp_path)]
+    done = run_script(BENCHMARKS / "publish_results.py", *args)
     assert done.returncode == 2 and message in done.stderr, done.stderr
     assert not (tmp_path / "x_vs_paper.png").exists()
 
@@ -362,8 +354,9 @@ def test_paper_figure_refuses_runs_of_different_experiments_repeated_seeds_and_t
 def test_paper_figure_writes_the_png_and_ends_with_a_json_line(tmp_path):
     path = tmp_path / "seed0.json"
     path.write_text(json.dumps(published_run(0, [0.1, 0.3, 0.2, 0.1])))
-    figures = last_json(
-        "publish_results.py", "figure", str(path), "--experiment", "x", "--docs", str(tmp_path)
-    )
+    args = ["figure", str(path), "--experiment", "x", "--docs", str(tmp_path)]
+    done = run_script(BENCHMARKS / "publish_results.py", *args)
+    assert done.returncode == 0, done.stderr
+    figures = json.loads(done.stdout.splitlines()[-1])
     assert figures["figure"] == str(tmp_path / "x_vs_paper.png") and figures["at_or_below_paper"] == [2]
     assert (tmp_path / "x_vs_paper.png").read_bytes().startswith(b"\x89PNG")

@@ -4,9 +4,10 @@ import dataclasses
 import functools
 
 import pytest
+from commands import ROOT
 from hydra import compose, initialize_config_dir
-from test_run import ROOT, load_run_module
 from test_run import composed_run as composed
+from test_run import load_run_module
 
 from modnet.bank import BankConfig
 from modnet.config import (
@@ -141,6 +142,10 @@ def test_validation_names_what_is_missing_and_the_valid_choices():
         validate(RunConfig(universe="tiny", holdout="four_link"))
     with pytest.raises(ConfigError, match="python run.py -m holdout=all"):
         validate(RunConfig(universe="tiny", holdout="all"))
+    run = RunConfig(universe="tiny")
+    run.pretrain.images = 100
+    with pytest.raises(ConfigError, match="'tiny' has none: use an image universe or pretrain.images=0"):
+        validate(run)
 
 
 def test_a_held_out_robot_or_task_that_no_training_world_covers_is_refused():

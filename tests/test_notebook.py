@@ -33,14 +33,12 @@ def outputs(notebook, kind):
 
 
 @pytest.mark.parametrize("source", ["trained here", "saved by run.py"])
-def test_notebook_composes_rolls_out_and_compares_with_the_wrong_task(tmp_path, source):
+def test_notebook_composes_rolls_out_and_compares_with_the_wrong_task(tmp_path, source, request):
     bank_dir = None
     if source == "saved by run.py":
-        from test_run import run_py
-
-        done = run_py("universe=tiny", "logger=none", f"hydra.run.dir={tmp_path / 'run'}")
+        run_dir, done, _ = request.getfixturevalue("tiny_run")  # the tests' one finished run.py job
         assert done.returncode == 0, done.stderr[-3000:]
-        bank_dir = tmp_path / "run" / "bank"
+        bank_dir = run_dir / "bank"
     notebook = execute(tmp_path, bank_dir)
     assert not outputs(notebook, "error")
     text = "".join(o.get("text", "") for o in outputs(notebook, "stream"))
