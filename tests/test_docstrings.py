@@ -7,8 +7,17 @@ import pkgutil
 import pytest
 
 import modnet
+from modnet import domains
 
-MODULES = sorted(m.name for m in pkgutil.walk_packages(modnet.__path__, "modnet."))
+#: walked from modnet.domains too: an editable install maps it from domains/, outside modnet's folder
+MODULES = sorted(
+    {"modnet.domains"}
+    | {
+        m.name
+        for package in (modnet, domains)
+        for m in pkgutil.walk_packages(package.__path__, f"{package.__name__}.")
+    }
+)
 #: the public building blocks: each must show how it is called
 TEACH_BY_EXAMPLE = {
     "modnet.bank",
