@@ -218,10 +218,12 @@ def compare_finetuning(
 
 
 def write_results(run_dir: Path, results: dict, seconds: dict[str, float], code: dict, threads: int) -> None:
-    """``results.json``: the figures, with the seconds each stage took, the code and torch's threads."""
+    """``results.json``: the figures, with the seconds each stage took, the code, torch's threads
+    and the machine (together, what a figure needs to repeat to the digit)."""
     results["seconds"] = {k: round(v, 1) for k, v in seconds.items()}
     results["code"] = code
     results["threads"] = threads
+    results["machine"] = report.machine()
     report.write_json(run_dir / "results.json", results)
 
 

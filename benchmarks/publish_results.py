@@ -137,6 +137,7 @@ def zero_shot(run_dir: Path, experiment: str, docs: Path = DOCS) -> dict:
         "samples": results["samples"],
         "wall_s": _wall_s(results),
         "code": results.get("code"),  # None: run before results.json recorded it
+        "machine": results.get("machine"),  # None: run before results.json recorded it
     }
     paper = PAPER_COUNTERPART.get(results["universe"], results["universe"])
     if paper in PAPER and paper_holdout(results):
@@ -221,6 +222,7 @@ def lowo(sweep_dir: Path, experiment: str, docs: Path = DOCS) -> dict:
                 "samples": r["samples"],
                 "wall_s": _wall_s(r),
                 "code": r.get("code"),
+                "machine": r.get("machine"),
             }
         )
     heatmap = collect(sweep_dir)
@@ -270,6 +272,7 @@ def algorithms(run_dirs: list[Path], experiment: str) -> dict:
                 "samples": r["samples"],
                 "wall_s": _wall_s(r),
                 "code": r.get("code"),
+                "machine": r.get("machine"),
             }
         )
     return {"experiment": experiment, "runs": runs}

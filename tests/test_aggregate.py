@@ -97,3 +97,7 @@ def test_a_two_job_joblib_multirun_writes_two_results_and_aggregates(tmp_path):
     code = json.loads((job / "results.json").read_text())["code"]  # the commit that ran, in every form
     assert one["code"] == code and [r["code"] for r in both["runs"]] == [code, code]
     assert code in [j["code"] for j in sweep["jobs"]]
+    machine = json.loads((job / "results.json").read_text())["machine"]  # and the machine, likewise
+    assert machine["cpu_capability"] and one["machine"] == machine
+    assert [r["machine"] for r in both["runs"]] == [machine, machine]
+    assert machine in [j["machine"] for j in sweep["jobs"]]

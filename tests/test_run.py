@@ -18,7 +18,7 @@ from modnet.bank import ModuleBank
 from modnet.checkpoint import CheckpointError, load_checkpoint
 from modnet.config import ConfigError, LoggerConfig, RunConfig, register_configs, validate
 from modnet.loggers import RunLogger
-from modnet.report import code_version
+from modnet.report import code_version, machine
 
 
 def load_run_module():
@@ -64,6 +64,7 @@ def test_tiny_pipeline_end_to_end_in_under_two_minutes(tiny_run):
     # each iteration's samples: one mean distance per iteration, no entry for "before"
     assert {s: len(c) for s, c in results["finetune_sampled"].items()} == {s: 1 for s in results["finetune"]}
     assert results["code"] == code_version()  # the commit that ran; None/None for an installed copy
+    assert results["machine"] == machine()  # where its figures repeat to the digit
     for name in [
         "learning_curves.png",
         "zero_shot.png",

@@ -27,13 +27,16 @@ import csv
 import io
 import json
 import os
+import platform
 import subprocess
 from collections.abc import Collection, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import imageio.v3 as iio
+import mujoco
 import numpy as np
+import torch
 from matplotlib.figure import Figure
 from matplotlib.ticker import MaxNLocator
 
@@ -41,6 +44,7 @@ from modnet.files import write_atomically
 
 __all__ = [
     "code_version",
+    "machine",
     "final_positions_strip",
     "plot_finetune",
     "plot_learning_curves",
@@ -61,6 +65,40 @@ def write_json(path: str | os.PathLike, data: Any) -> Path:
     text = json.dumps(data, indent=2)
     write_atomically(path, lambda tmp: tmp.write_text(text))
     return path
+
+
+def machine() -> dict[str, Any]:
+    """What decides a run's last digits besides its code and torch's threads, for ``results.json``:
+    the CPU, the kernels torch chose for it, and the numerical libraries' versions.
+
+    GPS feeds each iteration's rounding into the next, so the same command at the same commit
+    can end somewhere else on another CPU (docs/RESULTS.md, "What did not match"). With this
+    beside ``code``, a figure says where it repeats to the digit.
+
+    Examples:
+        >>> sorted(machine())
+        ['cpu', 'cpu_capability', 'mujoco', 'numpy', 'torch']
+        >>> machine()["torch"] == torch.__version__
+        True
+    """
+    return {
+        "cpu": _cpu_model(),
+        "cpu_capability": torch.backends.cpu.get_cpu_capability(),
+        "torch": torch.__version__,
+        "numpy": np.__version__,
+        "mujoco": mujoco.__version__,
+    }
+
+
+def _cpu_model() -> str:
+    """The CPU's model name from /proc/cpuinfo (Linux), else what ``platform`` knows."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
 
 
 def code_version(package_dir: str | os.PathLike | None = None) -> dict[str, Any]:
