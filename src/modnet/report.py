@@ -44,8 +44,8 @@ from modnet.files import write_atomically
 
 __all__ = [
     "code_version",
-    "machine",
     "final_positions_strip",
+    "machine",
     "plot_finetune",
     "plot_learning_curves",
     "plot_zero_shot",
