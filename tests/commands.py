@@ -2,9 +2,11 @@
 
 ``run_py`` runs ``python run.py`` in a fresh interpreter, as a user's job runs. ``run_script``
 runs a quick script (a refusal, publishing, scoring a saved run) in this process instead: a
-fresh interpreter would spend most of those seconds importing torch.
+fresh interpreter would spend most of those seconds importing torch. ``load_script`` imports a
+script to call its functions.
 """
 
+import importlib.util
 import io
 import os
 import runpy
@@ -38,6 +40,18 @@ def run_py(*overrides: str, timeout: float = 300, **popen) -> subprocess.Complet
         timeout=timeout,
         **popen,
     )
+
+
+def load_script(script: Path, name: str):
+    """A script (run.py, a benchmark) imported as the module ``name``, to call its functions.
+
+    Registered in ``sys.modules`` as an import would be: dataclasses look their module up there.
+    """
+    spec = importlib.util.spec_from_file_location(name, script)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    spec.loader.exec_module(module)
+    return module
 
 
 def run_script(script: Path, *args: str) -> subprocess.CompletedProcess:

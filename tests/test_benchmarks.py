@@ -1,6 +1,5 @@
 """The benchmark scripts: each ends with one JSON line; the single-world GPS run succeeds (slow)."""
 
-import importlib.util
 import json
 import subprocess
 import sys
@@ -9,7 +8,7 @@ import mujoco
 import numpy as np
 import pytest
 import torch
-from commands import BENCHMARKS, run_script
+from commands import BENCHMARKS, load_script, run_script
 from tensordict import TensorDict
 
 from modnet.bank import ModuleBank
@@ -18,11 +17,16 @@ from modnet.gps.trainer import PHASES, PIXEL_ROWS_PER_PASS
 from modnet.worlds import get_world
 
 
-def last_json(*args: str, timeout: float = 600) -> dict:
+def benchmark_lines(*args: str, timeout: float = 600) -> list[str]:
+    """``python benchmarks/<args>`` in a fresh interpreter, as a user runs it: its output lines."""
     out = subprocess.run(
         [sys.executable, *args], capture_output=True, text=True, timeout=timeout, check=True, cwd=BENCHMARKS
     )
-    return json.loads(out.stdout.strip().splitlines()[-1])
+    return out.stdout.strip().splitlines()
+
+
+def last_json(*args: str, timeout: float = 600) -> dict:
+    return json.loads(benchmark_lines(*args, timeout=timeout)[-1])
 
 
 @pytest.mark.slow
@@ -104,14 +108,7 @@ def test_gps_single_world_traces_where_the_object_goes():
 
 def single_world(*options: str) -> tuple[dict, list[float]]:
     """``gps_single_world.py``'s JSON figures and BADMM's policy weight (mean nu) per iteration."""
-    out = subprocess.run(
-        [sys.executable, "gps_single_world.py", *options],
-        capture_output=True,
-        text=True,
-        timeout=600,
-        check=True,
-        cwd=BENCHMARKS,
-    ).stdout.splitlines()
+    out = benchmark_lines("gps_single_world.py", *options)
     nu = [float(line.split("nu=")[1].split()[0]) for line in out if line.startswith("iteration")]
     return json.loads(out[-1]), nu
 
@@ -170,11 +167,7 @@ def test_gps_single_world_sizes_the_network_and_scores_random_conditions():
 
 
 def load_benchmark(name: str):
-    spec = importlib.util.spec_from_file_location(f"benchmark_{name}", BENCHMARKS / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # as an import would: dataclasses look their module up there
-    spec.loader.exec_module(module)
-    return module
+    return load_script(BENCHMARKS / f"{name}.py", f"benchmark_{name}")
 
 
 def test_object_contact_measures_approach_displacement_and_progress_towards_the_goal():

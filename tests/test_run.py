@@ -1,6 +1,5 @@
 """run.py end to end on the tiny universe: outputs, resuming a killed run, and configs refused up front."""
 
-import importlib.util
 import json
 import shutil
 import subprocess
@@ -10,7 +9,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from commands import BENCHMARKS, ENV, ITERATIONS, ROOT, run_py, run_script
+from commands import BENCHMARKS, ENV, ITERATIONS, ROOT, load_script, run_py, run_script
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
@@ -23,10 +22,7 @@ from modnet.report import code_version, machine
 
 def load_run_module():
     """run.py (the Hydra entry point at the repository root) imported as a module."""
-    spec = importlib.util.spec_from_file_location("modnet_run", ROOT / "run.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script(ROOT / "run.py", "modnet_run")
 
 
 def composed_run(*overrides: str) -> RunConfig:
