@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shlex
 import shutil
 from pathlib import Path
 
@@ -67,15 +68,16 @@ PAPER_FINETUNE = (
 )
 
 
-def command(run_dir: Path) -> str:
+def command(run_dir: Path, machine: dict | None = None) -> str:
     """The ``python run.py`` line that produced the job in ``run_dir`` (its Hydra overrides);
-    ``resume=true`` is left out: a resumed run gives what the uninterrupted one gives."""
+    ``resume=true`` is left out: a resumed run gives what the uninterrupted one gives.  Led by
+    the variables that chose the run's kernels (see :func:`kernel_settings`)."""
     overrides = yaml.safe_load((run_dir / ".hydra" / "overrides.yaml").read_text()) or []
     kept = [o for o in overrides if not o.startswith(("hydra.run.dir", "resume="))]
-    return " ".join(["python run.py", *kept])
+    return " ".join([*kernel_settings(machine), "python run.py", *kept])
 
 
-def sweep_command(sweep_dir: Path, num_worlds: int) -> str:
+def sweep_command(sweep_dir: Path, num_worlds: int, machine: dict | None = None) -> str:
     """The ``python run.py -m`` line of a sweep, ``holdout=all`` when it held out every world."""
     overrides = yaml.safe_load((sweep_dir / "multirun.yaml").read_text())["hydra"]["overrides"]
     hydra = [o for o in overrides["hydra"] if not o.startswith(("hydra.mode", "hydra.sweep.dir"))]
@@ -83,7 +85,15 @@ def sweep_command(sweep_dir: Path, num_worlds: int) -> str:
         "holdout=all" if o.startswith("holdout=") and o.count(",") + 1 == num_worlds else o
         for o in overrides["task"]
     ]
-    return " ".join(["python run.py -m", *task, *hydra])
+    return " ".join([*kernel_settings(machine), "python run.py -m", *task, *hydra])
+
+
+def kernel_settings(machine: dict | None) -> list[str]:
+    """``NAME=value`` for each variable that chose a run's kernels, as ``results.json``'s
+    ``machine`` records them (``modnet.report.KERNEL_VARIABLES``): they change its figures, so
+    a published command sets them as the run did."""
+    variables = (machine or {}).get("kernel_variables") or {}
+    return [f"{name}={shlex.quote(value)}" for name, value in variables.items()]
 
 
 def _round(x: float) -> float:
@@ -120,7 +130,7 @@ def zero_shot(run_dir: Path, experiment: str, docs: Path = DOCS) -> dict:
         "holdout": results["holdout"],
         "algo": results["algo"],
         "seed": results["seed"],
-        "command": command(run_dir),
+        "command": command(run_dir, results.get("machine")),
         "success_distance": results["success_distance"],
         "wrong_task_module": wrong["task"] if wrong else None,
         "positions": [
@@ -236,7 +246,7 @@ def lowo(sweep_dir: Path, experiment: str, docs: Path = DOCS) -> dict:
     return {
         "experiment": experiment,
         "universe": heatmap.universe,
-        "command": sweep_command(sweep_dir, heatmap.distance.size),
+        "command": sweep_command(sweep_dir, heatmap.distance.size, jobs[0]["machine"] if jobs else None),
         "robots": heatmap.robots,
         "tasks": heatmap.tasks,
         "composed_distance": [[None if np.isnan(v) else _round(v) for v in row] for row in heatmap.distance],
@@ -262,7 +272,7 @@ def algorithms(run_dirs: list[Path], experiment: str) -> dict:
             {
                 "algo": r["algo"],
                 "holdout": r["holdout"],
-                "command": command(run_dir),
+                "command": command(run_dir, r.get("machine")),
                 "composed_distance": [_round(d) for d in composed["distance"]],
                 "composed_mean": _round(composed["mean"]),
                 "composed_success_rate": composed["success_rate"],

@@ -1,4 +1,4 @@
-"""modnet.report: what a run records about the code that produced it."""
+"""modnet.report: what a run records about the code and the machine that produced it."""
 
 import shutil
 import subprocess
@@ -6,9 +6,9 @@ from pathlib import Path
 
 import pytest
 
-from modnet.report import code_version
+from modnet.report import KERNEL_VARIABLES, code_version, machine
 
-pytestmark = pytest.mark.skipif(shutil.which("git") is None, reason="needs git")
+needs_git = pytest.mark.skipif(shutil.which("git") is None, reason="needs git")
 
 
 def git(repo: Path, *args: str) -> str:
@@ -34,6 +34,7 @@ def checkout(tmp_path):
     return tmp_path
 
 
+@needs_git
 def test_a_checkout_reports_its_commit_and_whether_tracked_files_changed(checkout):
     package = checkout / "src" / "modnet"
     assert code_version(package) == {"commit": git(checkout, "rev-parse", "HEAD"), "dirty": False}
@@ -43,6 +44,7 @@ def test_a_checkout_reports_its_commit_and_whether_tracked_files_changed(checkou
     assert code_version(package) == {"commit": git(checkout, "rev-parse", "HEAD"), "dirty": True}
 
 
+@needs_git
 def test_an_installed_copy_has_no_commit_even_inside_another_repository(checkout, tmp_path_factory):
     installed = checkout / ".venv" / "lib" / "site-packages" / "modnet"  # a venv inside a project
     installed.mkdir(parents=True)
@@ -50,3 +52,12 @@ def test_an_installed_copy_has_no_commit_even_inside_another_repository(checkout
     alone = tmp_path_factory.mktemp("site-packages") / "modnet"  # no repository at all
     alone.mkdir()
     assert code_version(alone) == {"commit": None, "dirty": None}
+
+
+def test_the_machine_records_the_variables_that_chose_its_kernels(monkeypatch):
+    for name in KERNEL_VARIABLES:
+        monkeypatch.delenv(name, raising=False)
+    assert machine()["kernel_variables"] == {}
+    monkeypatch.setenv("MKL_ENABLE_INSTRUCTIONS", "AVX2")  # read when the run starts, not at import
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")  # threads are the run's own setting, not recorded here
+    assert machine()["kernel_variables"] == {"MKL_ENABLE_INSTRUCTIONS": "AVX2"}

@@ -174,6 +174,19 @@ def test_the_papers_claims_stand_only_beside_the_world_the_paper_held_out(tiny_r
     assert published["finetune"]["paper"] is None
 
 
+def test_a_published_command_sets_the_variables_that_chose_the_runs_kernels(tiny_run, tmp_path):
+    run_dir, done, _ = tiny_run
+    assert done.returncode == 0, done.stderr[-3000:]
+    plain = publish_zero_shot(run_dir, "tiny_plain", tmp_path)
+    assert plain["command"].startswith("python run.py universe=tiny")
+    kernels = {"MKL_ENABLE_INSTRUCTIONS": "AVX2"}  # on an AVX-512 machine: other figures (RESULTS)
+    published = publish_edited(
+        run_dir, lambda results: results["machine"].update(kernel_variables=kernels), "tiny_avx2", tmp_path
+    )
+    assert published["command"] == "MKL_ENABLE_INSTRUCTIONS=AVX2 " + plain["command"]
+    assert published["machine"]["kernel_variables"] == kernels
+
+
 def test_the_saved_bank_knows_what_each_module_was_trained_on(tiny_run):
     run_dir, done, _ = tiny_run
     assert done.returncode == 0

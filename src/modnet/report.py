@@ -67,9 +67,22 @@ def write_json(path: str | os.PathLike, data: Any) -> Path:
     return path
 
 
+#: Environment variables that choose which kernels torch, MKL, oneDNN and OpenBLAS run, and so
+#: a run's last digits: on an AVX-512 machine, ``ATEN_CPU_CAPABILITY=avx2`` alone ends the default
+#: job somewhere else (docs/RESULTS.md, "What did not match").
+KERNEL_VARIABLES = (
+    "ATEN_CPU_CAPABILITY",
+    "MKL_ENABLE_INSTRUCTIONS",
+    "MKL_CBWR",
+    "ONEDNN_MAX_CPU_ISA",
+    "OPENBLAS_CORETYPE",
+)
+
+
 def machine() -> dict[str, Any]:
     """What decides a run's last digits besides its code and torch's threads, for ``results.json``:
-    the CPU, the kernels torch chose for it, and the numerical libraries' versions.
+    the CPU, the kernels torch chose for it (and the variables set to choose them), and the
+    numerical libraries' versions.
 
     GPS feeds each iteration's rounding into the next, so the same command at the same commit
     can end somewhere else on another CPU (docs/RESULTS.md, "What did not match"). With this
@@ -77,13 +90,16 @@ def machine() -> dict[str, Any]:
 
     Examples:
         >>> sorted(machine())
-        ['cpu', 'cpu_capability', 'mujoco', 'numpy', 'torch']
+        ['cpu', 'cpu_capability', 'kernel_variables', 'mujoco', 'numpy', 'torch']
         >>> machine()["torch"] == torch.__version__
+        True
+        >>> set(machine()["kernel_variables"]) <= set(KERNEL_VARIABLES)  # those set, by name
         True
     """
     return {
         "cpu": _cpu_model(),
         "cpu_capability": torch.backends.cpu.get_cpu_capability(),
+        "kernel_variables": {name: os.environ[name] for name in KERNEL_VARIABLES if name in os.environ},
         "torch": torch.__version__,
         "numpy": np.__version__,
         "mujoco": mujoco.__version__,
