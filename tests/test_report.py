@@ -58,6 +58,6 @@ def test_the_machine_records_the_variables_that_chose_its_kernels(monkeypatch):
     for name in KERNEL_VARIABLES:
         monkeypatch.delenv(name, raising=False)
     assert machine()["kernel_variables"] == {}
-    monkeypatch.setenv("MKL_ENABLE_INSTRUCTIONS", "AVX2")  # read when the run starts, not at import
+    monkeypatch.setenv("MKL_ENABLE_INSTRUCTIONS", "AVX2")  # read at each call, not at import
     monkeypatch.setenv("OMP_NUM_THREADS", "1")  # threads are the run's own setting, not recorded here
     assert machine()["kernel_variables"] == {"MKL_ENABLE_INSTRUCTIONS": "AVX2"}

@@ -68,8 +68,8 @@ def write_json(path: str | os.PathLike, data: Any) -> Path:
 
 
 #: Environment variables that choose which kernels torch, MKL, oneDNN and OpenBLAS run, and so
-#: a run's last digits: on an AVX-512 machine, ``ATEN_CPU_CAPABILITY=avx2`` alone ends the default
-#: job somewhere else (docs/RESULTS.md, "What did not match").
+#: a run's last digits: on an AVX-512 machine, ``MKL_ENABLE_INSTRUCTIONS=AVX2`` alone ends the
+#: default job somewhere else (docs/RESULTS.md, "What did not match").
 KERNEL_VARIABLES = (
     "ATEN_CPU_CAPABILITY",
     "MKL_ENABLE_INSTRUCTIONS",
