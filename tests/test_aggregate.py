@@ -94,10 +94,11 @@ def test_a_two_job_joblib_multirun_writes_two_results_and_aggregates(tmp_path):
     assert one["means"]["start"] == pytest.approx(sum(starts) / len(starts), abs=1e-4) and min(starts) > 0
     both = publish("algorithms", str(job), str(job), "--experiment", "tiny_algorithms")
     assert [r["algo"] for r in both["runs"]] == ["badmm", "badmm"]
-    code = json.loads((job / "results.json").read_text())["code"]  # the commit that ran, in every form
+    recorded = json.loads((job / "results.json").read_text())
+    code = recorded["code"]  # the commit that ran, in every form
     assert one["code"] == code and [r["code"] for r in both["runs"]] == [code, code]
     assert code in [j["code"] for j in sweep["jobs"]]
-    machine = json.loads((job / "results.json").read_text())["machine"]  # and the machine, likewise
+    machine = recorded["machine"]  # and the machine, likewise
     assert machine["cpu_capability"] and one["machine"] == machine
     assert [r["machine"] for r in both["runs"]] == [machine, machine]
     assert machine in [j["machine"] for j in sweep["jobs"]]

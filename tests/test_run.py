@@ -177,12 +177,16 @@ def test_the_papers_claims_stand_only_beside_the_world_the_paper_held_out(tiny_r
 def test_a_published_command_sets_the_variables_that_chose_the_runs_kernels(tiny_run, tmp_path):
     run_dir, done, _ = tiny_run
     assert done.returncode == 0, done.stderr[-3000:]
-    plain = publish_zero_shot(run_dir, "tiny_plain", tmp_path)
+
+    def published_with(kernels: dict, experiment: str) -> dict:  # as if the run had been started so
+        return publish_edited(
+            run_dir, lambda results: results["machine"].update(kernel_variables=kernels), experiment, tmp_path
+        )
+
+    plain = published_with({}, "tiny_plain")
     assert plain["command"].startswith("python run.py universe=tiny")
     kernels = {"MKL_ENABLE_INSTRUCTIONS": "AVX2"}  # on an AVX-512 machine: other figures (RESULTS)
-    published = publish_edited(
-        run_dir, lambda results: results["machine"].update(kernel_variables=kernels), "tiny_avx2", tmp_path
-    )
+    published = published_with(kernels, "tiny_avx2")
     assert published["command"] == "MKL_ENABLE_INSTRUCTIONS=AVX2 " + plain["command"]
     assert published["machine"]["kernel_variables"] == kernels
 
