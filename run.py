@@ -193,7 +193,7 @@ def compare_finetuning(
             run_dir / "bank",
             *split.holdout,
             held_out_env(run, universe, split),
-            run.gps_config(),
+            run.finetune_gps_config(),
             iterations=run.eval.finetune_iterations,
             wrong_task=wrong_task,
             starts=run.eval.finetune_starts,

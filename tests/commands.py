@@ -20,6 +20,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 BENCHMARKS = ROOT / "benchmarks"
 ITERATIONS = 4  # GPS iterations of the tiny runs
+FINETUNE_SAMPLES = 3  # samples per condition of the shared tiny run's fine-tuning (it trains with 2)
 ENV = {
     **os.environ,
     "PYTHONUNBUFFERED": "1",

@@ -4,7 +4,7 @@ import time
 
 import pytest
 import torch
-from commands import ITERATIONS, run_py
+from commands import FINETUNE_SAMPLES, ITERATIONS, run_py
 
 
 @pytest.fixture(autouse=True, scope="session")
@@ -27,6 +27,7 @@ def tiny_run(tmp_path_factory):
         "logger=csv",
         f"gps.iterations={ITERATIONS}",
         "finetune=true",
+        f"eval.finetune_samples_per_condition={FINETUNE_SAMPLES}",
         "eval.random_conditions=3",
         f"hydra.run.dir={run_dir}",
     )

@@ -52,6 +52,10 @@ def test_overrides_reach_the_library_configs():
         4,
     )
     assert run.bank_config().task_hidden == (16,)
+    assert run.finetune_gps_config() == config  # fine-tuning samples as training does, by default
+    tuned = composed("universe=tiny", "gps.sgd_steps=7", "eval.finetune_samples_per_condition=9")
+    assert tuned.finetune_gps_config() == dataclasses.replace(tuned.gps_config(), samples_per_condition=9)
+    assert tuned.gps_config().samples_per_condition == 2  # the tiny universe's training budget stays
 
 
 def test_literal_choices_and_values_no_type_rules_out_fail_with_the_key():
@@ -66,6 +70,7 @@ def test_literal_choices_and_values_no_type_rules_out_fail_with_the_key():
         ("threads", 0, "threads must be at least 1, got 0"),
         ("bank.dropout", 1.5, "dropout must be a probability"),
         ("gps.badmm.max_policy_weight", 1e-3, r"gps\.badmm: .*max_policy_weight, got 1e-06 / 0.005 / 0.001"),
+        ("eval.finetune_samples_per_condition", 0, r"eval\.finetune_samples_per_condition must be at"),
     ]:
         run = RunConfig(universe="tiny")
         *path, name = key.split(".")

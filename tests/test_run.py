@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from commands import BENCHMARKS, ENV, ITERATIONS, ROOT, load_script, run_py, run_script
+from commands import BENCHMARKS, ENV, FINETUNE_SAMPLES, ITERATIONS, ROOT, load_script, run_py, run_script
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
@@ -57,6 +57,12 @@ def test_tiny_pipeline_end_to_end_in_under_two_minutes(tiny_run):
     assert set(results["finetune"]) == {"composed", "wrong_task", "scratch_shaping", "scratch_no_shaping"}
     assert all(len(curve) == 2 for curve in results["finetune"].values())  # before + 1 iteration
     assert set(results["finetune_samples"]) == set(results["finetune"])
+    # eval.finetune_samples_per_condition: every fine-tuning iteration samples each training
+    # condition FINETUNE_SAMPLES times, whatever the training drew (2)
+    iterations = len(results["finetune"]["composed"]) - 1
+    conditions = composed_run("universe=tiny").gps.num_conditions
+    finetune_trajectories = {s["trajectories"] for s in results["finetune_samples"].values()}
+    assert finetune_trajectories == {iterations * conditions * FINETUNE_SAMPLES}
     # each iteration's samples: one mean distance per iteration, no entry for "before"
     assert {s: len(c) for s, c in results["finetune_sampled"].items()} == {s: 1 for s in results["finetune"]}
     assert results["code"] == code_version()  # the commit that ran; None/None for an installed copy

@@ -170,6 +170,10 @@ class EvalConfig:
         finetune_iterations: GPS iterations per fine-tuning start (with ``finetune=true``).
         finetune_starts: which starts to compare (composed, wrong_task, scratch_shaping,
             scratch_no_shaping).
+        finetune_samples_per_condition: samples per condition and iteration of every
+            fine-tuning start (None: the training's ``gps.samples_per_condition``). Not part
+            of a checkpoint's identity, so ``resume=true`` on a copy of a finished run
+            fine-tunes its bank with another budget.
     """
 
     conditions: str = "test"
@@ -182,6 +186,7 @@ class EvalConfig:
     gif_frames: int = 25
     finetune_iterations: int = 10
     finetune_starts: list[str] = field(default_factory=lambda: list(FINETUNE_STARTS))
+    finetune_samples_per_condition: int | None = None
 
 
 @dataclass
@@ -235,6 +240,18 @@ class RunConfig:
         """The library's :class:`GPSConfig` of this run (``changes`` override fields)."""
         return dataclasses.replace(build(GPSConfig, self.gps, "gps."), **changes)
 
+    def finetune_gps_config(self) -> GPSConfig:
+        """The :class:`GPSConfig` of the fine-tuning starts: the training's, with
+        ``eval.finetune_samples_per_condition`` when set.
+
+        Examples:
+            >>> run = RunConfig(universe="tiny", eval=EvalConfig(finetune_samples_per_condition=20))
+            >>> run.gps_config().samples_per_condition, run.finetune_gps_config().samples_per_condition
+            (5, 20)
+        """
+        samples = self.eval.finetune_samples_per_condition
+        return self.gps_config() if samples is None else self.gps_config(samples_per_condition=samples)
+
     def bank_config(self) -> BankConfig:
         return build(BankConfig, self.bank, "bank.")
 
@@ -267,6 +284,12 @@ class RunConfig:
         if self.logger.backend not in LOGGERS:
             raise ConfigError(
                 f"logger.backend must be one of {', '.join(LOGGERS)}, got {self.logger.backend!r}"
+            )
+        samples = self.eval.finetune_samples_per_condition
+        if samples is not None and samples < 1:
+            raise ConfigError(
+                "eval.finetune_samples_per_condition must be at least 1 "
+                f"(or null: gps.samples_per_condition), got {samples}"
             )
         unknown = sorted(set(self.eval.finetune_starts) - set(FINETUNE_STARTS))
         if unknown:
