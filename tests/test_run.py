@@ -269,6 +269,9 @@ def test_an_existing_run_is_never_overwritten_nor_resumed_under_another_config(t
         run.resume_point(changed, checkpoint, run.run_identity(changed, universe, split))
     longer = composed_run("universe=tiny", "gps.iterations=5", "resume=true")  # training may go on
     assert run.resume_point(longer, checkpoint, run.run_identity(longer, universe, split)).iteration == 4
+    # a finished bank may be fine-tuned again with another budget
+    budget = composed_run("universe=tiny", "eval.finetune_samples_per_condition=20", "resume=true")
+    assert run.resume_point(budget, checkpoint, run.run_identity(budget, universe, split)).iteration == 4
 
 
 def test_a_corrupt_checkpoint_stops_the_run_with_one_message_and_stays(tmp_path):
