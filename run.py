@@ -61,6 +61,7 @@ NEWER_OPTIONS = {
     "gps.dynamics_prior_per_condition": False,
     "gps.train_convolutions": True,
     "gps.clip_targets": False,
+    "gps.sample_on_policy": False,
 }
 
 

@@ -56,6 +56,10 @@ def test_overrides_reach_the_library_configs():
     tuned = composed("universe=tiny", "gps.sgd_steps=7", "eval.finetune_samples_per_condition=9")
     assert tuned.finetune_gps_config() == dataclasses.replace(tuned.gps_config(), samples_per_condition=9)
     assert tuned.gps_config().samples_per_condition == 2  # the tiny universe's training budget stays
+    on_policy = composed("universe=tiny", "eval.finetune_sample_on_policy=true")
+    expected = dataclasses.replace(on_policy.gps_config(), sample_on_policy=True)
+    assert on_policy.finetune_gps_config() == expected
+    assert not on_policy.gps_config().sample_on_policy  # training samples the controllers
 
 
 def test_literal_choices_and_values_no_type_rules_out_fail_with_the_key():

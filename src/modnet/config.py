@@ -174,6 +174,9 @@ class EvalConfig:
             fine-tuning start (None: the training's ``gps.samples_per_condition``). Not part
             of a checkpoint's identity, so ``resume=true`` on a copy of a finished run
             fine-tunes its bank with another budget.
+        finetune_sample_on_policy: every fine-tuning start samples the composed policy itself
+            from its second iteration on, instead of the controllers (``gps.sample_on_policy``
+            for fine-tuning only; not part of a checkpoint's identity either).
     """
 
     conditions: str = "test"
@@ -187,6 +190,7 @@ class EvalConfig:
     finetune_iterations: int = 10
     finetune_starts: list[str] = field(default_factory=lambda: list(FINETUNE_STARTS))
     finetune_samples_per_condition: int | None = None
+    finetune_sample_on_policy: bool = False
 
 
 @dataclass
@@ -242,15 +246,20 @@ class RunConfig:
 
     def finetune_gps_config(self) -> GPSConfig:
         """The :class:`GPSConfig` of the fine-tuning starts: the training's, with
-        ``eval.finetune_samples_per_condition`` when set.
+        ``eval.finetune_samples_per_condition`` when set, and sampling the policy with
+        ``eval.finetune_sample_on_policy``.
 
         Examples:
             >>> run = RunConfig(universe="tiny", eval=EvalConfig(finetune_samples_per_condition=20))
             >>> run.gps_config().samples_per_condition, run.finetune_gps_config().samples_per_condition
             (5, 20)
         """
-        samples = self.eval.finetune_samples_per_condition
-        return self.gps_config() if samples is None else self.gps_config(samples_per_condition=samples)
+        changes: dict[str, Any] = {}
+        if self.eval.finetune_samples_per_condition is not None:
+            changes["samples_per_condition"] = self.eval.finetune_samples_per_condition
+        if self.eval.finetune_sample_on_policy:
+            changes["sample_on_policy"] = True
+        return self.gps_config(**changes)
 
     def bank_config(self) -> BankConfig:
         return build(BankConfig, self.bank, "bank.")

@@ -3,6 +3,7 @@
 import copy
 import dataclasses
 import io
+import math
 
 import pytest
 import torch
@@ -267,6 +268,39 @@ def test_fine_tuning_starts_from_the_composed_policy():
     tuned = GPSTrainer(teacher.bank, GRID[:1], small_config(init_from_policy=True))
     first = tuned.step()["three_link/reach_red"]
     assert first["distance"] < 0.7 * scratch["distance"]
+
+
+@pytest.mark.parametrize("algo", ["mdgps", "badmm"])
+def test_sample_on_policy_samples_the_network_after_the_first_iteration(algo):
+    """sample_on_policy (the GPS code's option): from the second iteration on the samples come
+    from the composed policy, not the controllers, and the C-step is centred on the policy's
+    linearisation as it acts; the first iteration is the start's (the policy when fine-tuning,
+    the controllers from scratch). Without it, only fine-tuning's first iteration samples the policy."""
+    teacher = trainer_for(worlds=GRID[:1])
+    teacher.step()
+    cases = [
+        (dict(init_from_policy=True, sample_on_policy=True), ["policy", "policy", "policy"]),
+        (dict(init_from_policy=False, sample_on_policy=True), ["controllers", "policy", "policy"]),
+        (dict(init_from_policy=True, sample_on_policy=False), ["policy", "controllers", "controllers"]),
+    ]
+    for options, expected in cases:
+        trainer = GPSTrainer(copy.deepcopy(teacher.bank), GRID[:1], small_config(algo=algo, **options))
+        (state,) = trainer.states.values()
+        sample, actors = state.sampler.sample, []
+
+        def spy(actor=None, sample=sample, actors=actors, state=state):
+            actors.append("controllers" if actor is state.controller else "policy")
+            return sample(actor)
+
+        state.sampler.sample = spy
+        for _ in range(3):
+            diagnostics = trainer.step()[state.name]
+            assert math.isfinite(diagnostics["distance"]) and math.isfinite(diagnostics["kl"]), diagnostics
+        assert actors == expected, options
+        if options["sample_on_policy"]:  # the trust region's centre is what was sampled
+            sampled_with = state.current.gains.mean_actions(state.samples.X)
+            assert not torch.allclose(sampled_with, state.controller.gains.mean_actions(state.samples.X))
+            assert sampled_with.abs().max() <= 1.25 * TORQUE_LIMIT  # the policy as it acts: clipped
 
 
 @pytest.mark.parametrize("algo", ["mdgps", "badmm"])

@@ -3,7 +3,8 @@
 One :meth:`GPSTrainer.step` is one GPS iteration:
 
 1. **sample**: N rollouts per condition of every world from its linear-Gaussian controllers
-   (:class:`~modnet.gps.sampling.WorldSampler`, TorchRL env + replay-buffer storage);
+   (:class:`~modnet.gps.sampling.WorldSampler`, TorchRL env + replay-buffer storage), or
+   from the composed policy itself (``init_from_policy``, ``sample_on_policy``);
 2. **cost**: quadratic expansion of each world's torch cost by autograd;
 3. **dynamics**: per-step linear-Gaussian fits with a GMM prior;
 4. **C-step**: KL-constrained LQR per world and condition, against the linearised policy
@@ -115,6 +116,10 @@ class GPSConfig:
     #: controllers from their linearisation (instead of fitting the policy to hold-position ones),
     #: taken in that iteration on their actions as applied, clipped to the torque limits
     init_from_policy: bool = False
+    #: from the second iteration on, sample the composed policy itself instead of the
+    #: controllers, and centre the C-step's trust region on its linearisation as it acts (the
+    #: GPS code's ``sample_on_policy``); the S-step still imitates the controllers
+    sample_on_policy: bool = False
     #: False: the convolutions of a vision bank keep the weights they start with (what pose
     #: pretraining taught them), and the S-step trains the layers after the feature points only
     #: (the trainer sets ``requires_grad=False`` on the bank's encoders, which stays so after it).
@@ -312,30 +317,36 @@ class GPSTrainer:
         """
         start = time.perf_counter()
         states = list(self.states.values())
-        from_policy = self.iteration == 0 and self.config.init_from_policy
+        from_policy = self._samples_policy()
         for state in states:
             self._sample_and_fit(state, self._composed(state) if from_policy else None)
         # Inputs z-scored over this iteration's states; after the first fit the networks'
         # first layers absorb the change, so no training is undone.
         fresh = self.iteration == 0 and not from_policy
         self.bank.fit_normalization({s.name: s.samples.obs for s in states}, keep_function=not fresh)
-        if from_policy:  # the controllers start where the composed policy is, as it acts
+        if from_policy:  # the C-step is centred where the composed policy is, as it acts
             self._policy_outputs(states)
             for state in states:
-                state.controller.set_gains(state.policy)
+                if self.iteration == 0:  # and the controllers start there
+                    state.controller.set_gains(state.policy)
                 state.current.gains = frozen(state.policy)
-                self._record_action_gap(state)  # against the controllers it now samples with
+                self._record_action_gap(state)  # against the linearisation it sampled with
         elif fresh:
             self._s_step(self.config.initial_sgd_steps, {s.name: self._controller_targets(s) for s in states})
         if self.config.algo == "mdgps":
             self._mdgps_update(states, outputs_ready=from_policy)
-        else:
-            self._badmm_update(states, outputs_ready=from_policy)
+        else:  # BADMM's first round trains the network before it uses its outputs, after the first iteration
+            self._badmm_update(states, outputs_ready=from_policy and self.iteration == 0)
         diagnostics = {s.name: self._diagnose(s) for s in states}
         self.history.append(diagnostics)
         self.iteration += 1
         self.seconds += time.perf_counter() - start
         return diagnostics
+
+    def _samples_policy(self) -> bool:
+        """Whether this iteration samples the composed policy instead of the controllers: the
+        first one with ``init_from_policy`` (fine-tuning), every later one with ``sample_on_policy``."""
+        return self.config.init_from_policy if self.iteration == 0 else self.config.sample_on_policy
 
     def _composed(self, state: WorldState):
         return self.bank.compose(*self.bank.world(state.name))
@@ -392,12 +403,13 @@ class GPSTrainer:
         """The composed policies' mean actions at every world's samples, and their linearisation
         (which also feeds the policy prior).
 
-        In the first iteration of fine-tuning (``init_from_policy``) the means are clipped to the
-        torque limits first: a network untrained on its world can ask for far more torque than
-        the arm has, and the controllers must start from, and the first C-step stay near, what
-        it does in the world.  Afterwards the network imitates the controllers, as in training.
+        In an iteration that samples the policy (the first of fine-tuning, ``init_from_policy``;
+        every later one with ``sample_on_policy``) the means are clipped to the torque limits
+        first: a network untrained on its world can ask for far more torque than the arm has,
+        and the controllers must start from, and the C-step stay near, what it does in the
+        world.  Otherwise the network imitates the controllers, as in training.
         """
-        as_applied = self.iteration == 0 and self.config.init_from_policy
+        as_applied = self._samples_policy()
         with self._timed("policy"):
             self.bank.eval()
             out = self._forward_samples(states)
