@@ -335,8 +335,8 @@ class GPSTrainer:
             self._s_step(self.config.initial_sgd_steps, {s.name: self._controller_targets(s) for s in states})
         if self.config.algo == "mdgps":
             self._mdgps_update(states, outputs_ready=from_policy)
-        else:  # BADMM's first round trains the network before it uses its outputs, after the first iteration
-            self._badmm_update(states, outputs_ready=from_policy and self.iteration == 0)
+        else:
+            self._badmm_update(states, outputs_ready=from_policy)
         diagnostics = {s.name: self._diagnose(s) for s in states}
         self.history.append(diagnostics)
         self.iteration += 1
@@ -527,21 +527,23 @@ class GPSTrainer:
         self._s_step(self.config.sgd_steps, {s.name: self._controller_targets(s) for s in states})
 
     def _badmm_update(self, states: Sequence[WorldState], outputs_ready: bool = False) -> None:
-        """BADMM: alternate S-step, dual step and C-step ``inner_iterations`` times (the first
-        round reuses the policy's outputs when ``outputs_ready``)."""
+        """BADMM: alternate S-step, dual step and C-step ``inner_iterations`` times (a round
+        that starts without an S-step, the first of the first iteration, reuses the policy's
+        outputs when ``outputs_ready``)."""
         cfg = self.config.badmm
         for state in states:
             self._adapt_step(state)
         sampling_gains = {s.name: s.current.gains for s in states}
         for inner in range(cfg.inner_iterations):
-            if self.iteration > 0 or inner > 0:
+            trains_first = self.iteration > 0 or inner > 0
+            if trains_first:
                 targets = {s.name: self._badmm_targets(s) for s in states}
                 self._s_step(max(1, self.config.sgd_steps // cfg.inner_iterations), targets)
-            if inner > 0 or not outputs_ready:
+            if trains_first or not outputs_ready:  # the S-step has changed the outputs
                 self._policy_outputs(states)
             for state in states:
                 gains = state.controller.gains
-                if self.iteration > 0 or inner > 0:
+                if trains_first:
                     kl = kl_divergence(gains, state.policy, lqr_forward(gains, state.current.dynamics), True)
                     state.duals = dual_step(
                         state.duals,
