@@ -60,6 +60,9 @@ def test_overrides_reach_the_library_configs():
     expected = dataclasses.replace(on_policy.gps_config(), sample_on_policy=True)
     assert on_policy.finetune_gps_config() == expected
     assert not on_policy.gps_config().sample_on_policy  # training samples the controllers
+    small_steps = composed("universe=tiny", "eval.finetune_kl_step=0.2")
+    assert small_steps.finetune_gps_config() == dataclasses.replace(small_steps.gps_config(), kl_step=0.2)
+    assert small_steps.gps_config().kl_step == GPSConfig.kl_step  # training keeps its trust region
 
 
 def test_literal_choices_and_values_no_type_rules_out_fail_with_the_key():
@@ -75,6 +78,8 @@ def test_literal_choices_and_values_no_type_rules_out_fail_with_the_key():
         ("bank.dropout", 1.5, "dropout must be a probability"),
         ("gps.badmm.max_policy_weight", 1e-3, r"gps\.badmm: .*max_policy_weight, got 1e-06 / 0.005 / 0.001"),
         ("eval.finetune_samples_per_condition", 0, r"eval\.finetune_samples_per_condition must be at"),
+        ("eval.finetune_kl_step", 0.0, r"eval\.finetune_kl_step must be positive"),
+        ("gps.kl_step", -1.0, r"gps\.kl_step must be positive, got -1\.0"),
     ]:
         run = RunConfig(universe="tiny")
         *path, name = key.split(".")

@@ -177,6 +177,8 @@ class EvalConfig:
         finetune_sample_on_policy: every fine-tuning start samples the composed policy itself
             from its second iteration on, instead of the controllers (``gps.sample_on_policy``
             for fine-tuning only; not part of a checkpoint's identity either).
+        finetune_kl_step: the C-step's KL budget per time step in every fine-tuning start
+            (None: ``gps.kl_step``); not part of a checkpoint's identity.
     """
 
     conditions: str = "test"
@@ -191,6 +193,7 @@ class EvalConfig:
     finetune_starts: list[str] = field(default_factory=lambda: list(FINETUNE_STARTS))
     finetune_samples_per_condition: int | None = None
     finetune_sample_on_policy: bool = False
+    finetune_kl_step: float | None = None
 
 
 @dataclass
@@ -246,8 +249,8 @@ class RunConfig:
 
     def finetune_gps_config(self) -> GPSConfig:
         """The :class:`GPSConfig` of the fine-tuning starts: the training's, with
-        ``eval.finetune_samples_per_condition`` when set, and sampling the policy with
-        ``eval.finetune_sample_on_policy``.
+        ``eval.finetune_samples_per_condition`` and ``eval.finetune_kl_step`` when set, and
+        sampling the policy with ``eval.finetune_sample_on_policy``.
 
         Examples:
             >>> run = RunConfig(universe="tiny", eval=EvalConfig(finetune_samples_per_condition=20))
@@ -259,6 +262,8 @@ class RunConfig:
             changes["samples_per_condition"] = self.eval.finetune_samples_per_condition
         if self.eval.finetune_sample_on_policy:
             changes["sample_on_policy"] = True
+        if self.eval.finetune_kl_step is not None:
+            changes["kl_step"] = self.eval.finetune_kl_step
         return self.gps_config(**changes)
 
     def bank_config(self) -> BankConfig:
@@ -300,6 +305,9 @@ class RunConfig:
                 "eval.finetune_samples_per_condition must be at least 1 "
                 f"(or null: gps.samples_per_condition), got {samples}"
             )
+        kl_step = self.eval.finetune_kl_step
+        if kl_step is not None and not kl_step > 0:
+            raise ConfigError(f"eval.finetune_kl_step must be positive (or null: gps.kl_step), got {kl_step}")
         unknown = sorted(set(self.eval.finetune_starts) - set(FINETUNE_STARTS))
         if unknown:
             raise ConfigError(f"eval.finetune_starts: unknown {unknown}; valid: {', '.join(FINETUNE_STARTS)}")

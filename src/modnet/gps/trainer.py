@@ -138,6 +138,8 @@ class GPSConfig:
         for name in ("samples_per_condition", "sgd_steps", "initial_sgd_steps", "batch_per_world"):
             if getattr(self, name) < 1:
                 raise ValueError(f"gps.{name} must be at least 1, got {getattr(self, name)}")
+        if not self.kl_step > 0:
+            raise ValueError(f"gps.kl_step must be positive, got {self.kl_step}")
         if not self.dynamics_ridge > 0:
             raise ValueError(f"gps.dynamics_ridge must be positive, got {self.dynamics_ridge}")
         if self.noise_smoothing < 0:
