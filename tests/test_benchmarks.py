@@ -353,3 +353,18 @@ def test_paper_figure_writes_the_png_and_ends_with_a_json_line(tmp_path):
     figures = json.loads(done.stdout.splitlines()[-1])
     assert figures["figure"] == str(tmp_path / "x_vs_paper.png") and figures["at_or_below_paper"] == [2]
     assert (tmp_path / "x_vs_paper.png").read_bytes().startswith(b"\x89PNG")
+
+
+def test_first_finetune_iteration_reruns_the_runs_first_iteration_without_noise(tiny_run):
+    run_dir, _, _ = tiny_run
+    results = json.loads((run_dir / "results.json").read_text())
+    out = last_json("first_finetune_iteration.py", str(run_dir), "--kl-step", "1.0", "0.05")
+    assert out["run_kl_step"] == 1.0 and out["holdout"] == results["holdout"]
+    at_run, small = out["by_kl_step"]["1.0"], out["by_kl_step"]["0.05"]
+    # the run's own first iteration, redone: its network scores what the run's curve says
+    assert at_run["network_after_test"] == pytest.approx(results["finetune"]["composed"][1], abs=1e-4)
+    assert small["network_before"] == at_run["network_before"]  # the same bank, noise-free
+    assert small["linearisation"] == at_run["linearisation"]  # and the same first samples
+    assert small["kl"] < at_run["kl"]  # the C-steps kept nearer the network
+    names = {"network_before", "linearisation", "first_c_step", "last_c_step", "network_after", "untouched"}
+    assert names <= set(at_run) and all(at_run[name] >= 0 for name in names)

@@ -1,0 +1,156 @@
+"""What fine-tuning's first GPS iteration does to a transferred start, free of sampling noise.
+
+A transferred start (the composed modules, or a wrong task module) begins fine-tuning by
+sampling its network, starting the controllers from the network's linearisation (clipped to
+the torque limits), and then running BADMM's rounds: a C-step, then S-steps, dual steps and
+C-steps.  Sampled distances are too noisy to say which of these loses what the network did
+zero-shot (one draw of 160 trajectories moves by about 0.01), so this reruns that iteration
+on a finished run's bank, as ``run.py finetune=true`` does, and rolls out with mean actions
+(no noise: every difference is exact) on the held-out world's training conditions:
+
+- ``network_before``: the network as the bank holds it;
+- ``linearisation``: its linearisation, the controllers' start and the first C-step's centre;
+- ``first_c_step``: the controllers after the first C-step, before any S-step;
+- ``last_c_step``: the controllers the iteration ends with;
+- ``network_after``: the network after the iteration's S-steps;
+- ``untouched``: the distance each condition starts from.
+
+``network_after_test`` is the network after the iteration at the test positions, the second
+point of the run's fine-tuning curve (``run_curve_1``): the two agree when this reran the
+run's iteration.  ``--kl-step`` repeats everything at each KL budget (the run's
+``eval.finetune_kl_step``, else ``gps.kl_step``, when not given).
+
+Prints a line per KL budget, then ONE JSON object on its last line.
+
+    python benchmarks/first_finetune_iteration.py outputs/manipulation --kl-step 1.0 0.2
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import dataclasses
+import json
+from pathlib import Path
+
+import torch
+from omegaconf import OmegaConf
+
+from modnet.config import RunConfig
+from modnet.evaluate import _start_bank, evaluating, evaluation_env, score, start_config
+from modnet.gps.controller import LinearGaussianGains
+from modnet.gps.sampling import WorldSampler
+from modnet.gps.trainer import GPSTrainer
+
+TRANSFERRED = ("composed", "wrong_task")
+
+
+def final_distance(sampler: WorldSampler, policy) -> torch.Tensor:
+    """Each training condition's final distance under ``policy`` (one rollout per condition)."""
+    td = sampler.env.rollout(sampler.horizon, policy, break_when_any_done=False)
+    return sampler.env.final_distance(td)
+
+
+def controller_distance(
+    sampler: WorldSampler, trainer: GPSTrainer, gains: LinearGaussianGains
+) -> torch.Tensor:
+    """``final_distance`` of the held-out world's controllers with ``gains``, mean actions only."""
+    (state,) = trainer.states.values()
+    controller, kept = state.controller, state.controller.gains
+    controller.set_gains(gains)
+    controller.deterministic = True
+    try:
+        with torch.no_grad():
+            return final_distance(sampler, controller)
+    finally:
+        controller.deterministic = None
+        controller.set_gains(kept)
+
+
+def first_iteration(run_dir: Path, run: RunConfig, results: dict, start: str, kl_step: float) -> dict:
+    robot, task = results["holdout"].split("/")
+    wrong_task = results["methods"]["wrong_task"]["task"] if "wrong_task" in results["methods"] else None
+    config = start_config(dataclasses.replace(run.finetune_gps_config(), kl_step=kl_step), start)
+    bank = _start_bank(run_dir / "bank", start, robot, task, wrong_task, config.seed)
+    trainer = GPSTrainer(bank, [(robot, task)], config)
+    sampler = WorldSampler(
+        robot,
+        task,
+        conditions=config.conditions,
+        samples_per_condition=1,
+        horizon=config.horizon,
+        shaping=False,
+        seed=config.condition_seed,
+        num_conditions=config.num_conditions,
+    )
+    with evaluating(bank):
+        before = final_distance(sampler, bank.compose(robot, task))
+
+    c_steps: list[LinearGaussianGains] = []
+    c_step = trainer._c_step
+
+    def recording_c_step(state, *args, **kwargs):  # keep each C-step's controllers
+        c_step(state, *args, **kwargs)
+        c_steps.append(copy.deepcopy(state.controller.gains))
+
+    trainer._c_step = recording_c_step
+    (diagnostics,) = trainer.step().values()
+    (state,) = trainer.states.values()
+    distances = {
+        "network_before": before,
+        "linearisation": controller_distance(sampler, trainer, state.current.gains),
+        "first_c_step": controller_distance(sampler, trainer, c_steps[0]),
+        "last_c_step": controller_distance(sampler, trainer, c_steps[-1]),
+    }
+    with evaluating(bank):
+        distances["network_after"] = final_distance(sampler, bank.compose(robot, task))
+        distances["untouched"] = sampler.env.start_distance(
+            sampler.env.rollout(1, bank.compose(robot, task), break_when_any_done=False)
+        )
+    test_env = evaluation_env(robot, task, horizon=results["horizon"])
+    out = {name: round(float(d.mean()), 4) for name, d in distances.items()}
+    out["network_after_test"] = round(score(bank, robot, task, test_env).mean, 4)
+    out["sampled"] = round(float(diagnostics["distance"]), 4)
+    out["kl"] = round(float(diagnostics["kl"]), 2)
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("run_dir", type=Path, help="a finished run.py run directory with finetune=true")
+    parser.add_argument("--start", choices=TRANSFERRED, default="composed")
+    parser.add_argument("--kl-step", type=float, nargs="+", default=None, help="KL budgets per time step")
+    args = parser.parse_args()
+
+    needed = ("results.json", "bank/manifest.json", ".hydra/config.yaml")
+    missing = [name for name in needed if not (args.run_dir / name).exists()]
+    if missing:
+        parser.error(f"{args.run_dir} is not a finished run.py run directory: no {', '.join(missing)}")
+    results = json.loads((args.run_dir / "results.json").read_text())
+    if args.start == "wrong_task" and "wrong_task" not in results["methods"]:
+        parser.error(f"{args.run_dir}'s bank has no wrong task module; valid starts: composed")
+    saved = OmegaConf.load(args.run_dir / ".hydra" / "config.yaml")
+    run: RunConfig = OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(RunConfig), saved))
+    torch.set_num_threads(run.threads)
+    kl_steps = args.kl_step or [run.finetune_gps_config().kl_step]
+    if any(not k > 0 for k in kl_steps):
+        parser.error(f"--kl-step must be positive, got {kl_steps}")
+
+    curve = results.get("finetune", {}).get(args.start)
+    out = {
+        "run_dir": str(args.run_dir),
+        "holdout": results["holdout"],
+        "start": args.start,
+        "run_curve_1": curve[1] if curve and len(curve) > 1 else None,
+        "run_kl_step": run.finetune_gps_config().kl_step,
+        "by_kl_step": {},
+    }
+    for kl_step in kl_steps:
+        figures = first_iteration(args.run_dir, run, results, args.start, kl_step)
+        out["by_kl_step"][str(kl_step)] = figures
+        print(f"kl_step {kl_step:g}: " + ", ".join(f"{k} {v:g}" for k, v in figures.items()), flush=True)
+    print(json.dumps(out))
+
+
+if __name__ == "__main__":
+    main()
