@@ -215,6 +215,8 @@ def compare_finetuning(
             log.scalars({f"finetune/{name}/distance": distance}, step=i)
         for i, distance in enumerate(tuning.sampled[name], start=1):
             log.scalars({f"finetune/{name}/sampled_distance": distance}, step=i)
+        for i, distance in enumerate(tuning.training[name]):
+            log.scalars({f"finetune/{name}/training_distance": distance}, step=i)
     return tuning, failure
 
 
@@ -295,6 +297,7 @@ def main(cfg: DictConfig) -> None:
                 results["finetune_failed"] = tuning.failed
             results["finetune"] = tuning.curves
             results["finetune_sampled"] = tuning.sampled
+            results["finetune_training"] = tuning.training
             results["finetune_samples"] = tuning.samples
             figures.append("finetune")
             seconds["finetune"] = time.perf_counter() - start

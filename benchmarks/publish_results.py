@@ -171,7 +171,7 @@ def zero_shot(run_dir: Path, experiment: str, docs: Path = DOCS) -> dict:
 def finetuning(results: dict) -> dict:
     """Fine-tuning curves (iteration -> mean test distance; 0: before), iterations to success and,
     where the run recorded them, the mean distance of each iteration's samples (entry i:
-    iteration i + 1)."""
+    iteration i + 1) and the network's on the training conditions (entry i: after i iterations)."""
     success = results["success_distance"]
     curves = {start: [_round(d) for d in curve] for start, curve in results["finetune"].items()}
     # the first iteration whose mean test distance is below the success distance; None: never
@@ -181,6 +181,11 @@ def finetuning(results: dict) -> dict:
         "iterations_to_success": {start: its[0] if its else None for start, its in reached.items()},
         "sampled": {
             start: [_round(d) for d in curve] for start, curve in results.get("finetune_sampled", {}).items()
+        }
+        or None,
+        # the network's mean distance on the training conditions after 0, 1, ... iterations
+        "training_conditions": {
+            start: [_round(d) for d in curve] for start, curve in results.get("finetune_training", {}).items()
         }
         or None,
         "samples": results.get("finetune_samples"),

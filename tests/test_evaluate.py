@@ -158,6 +158,10 @@ def test_finetune_gives_one_curve_per_start_from_before_training(bank, env, tmp_
     assert list(tuning.sampled) == list(curves)
     assert all(len(c) == 1 and np.isfinite(c).all() and min(c) >= 0 for c in tuning.sampled.values())
     assert curves["composed"][0] == pytest.approx(score(bank, *HELD_OUT, env).mean)  # entry 0: the saved bank
+    assert list(tuning.training) == list(curves) and all(len(c) == 2 for c in tuning.training.values())
+    scenes = evaluation_env(*HELD_OUT, num_conditions=config.num_conditions, horizon=12, conditions="train")
+    assert tuning.training["composed"][0] == pytest.approx(score(bank, *HELD_OUT, scenes).mean)  # its scenes
+    assert tuning.training["composed"][0] != pytest.approx(curves["composed"][0])  # not the test positions
     assert "wrong_task" not in finetune(
         tmp_path / "bank", *HELD_OUT, env, config, iterations=0, wrong_task=None
     ).curves

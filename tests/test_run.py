@@ -118,6 +118,9 @@ def test_published_fine_tuning_has_curves_iterations_to_success_samples_and_comm
     assert tuning["samples"] == results["finetune_samples"]
     sampled = results["finetune_sampled"]
     assert tuning["sampled"] == {s: pytest.approx(c, abs=1e-4) for s, c in sampled.items()}
+    on_scenes = results["finetune_training"]  # the network on the training conditions, entry 0 before
+    assert tuning["training_conditions"] == {s: pytest.approx(c, abs=1e-4) for s, c in on_scenes.items()}
+    assert all(len(on_scenes[s]) == len(c) for s, c in results["finetune"].items())
     assert published["code"] == results["code"]
     assert (tmp_path / "tiny_finetune_finetune.png").read_bytes() == (run_dir / "finetune.png").read_bytes()
     assert tuning["paper"].startswith("the composed start without shaping")  # the paper's held-out world

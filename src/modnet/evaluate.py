@@ -295,11 +295,15 @@ class FineTuning:
     trajectories each iteration sampled (``sampled``; entry i: iteration i + 1's samples, drawn
     from the local controllers, or from the network at a transferred start's first iteration)
     and the environment samples it drew.  ``sampled`` falling while ``curves`` stays flat means
-    the controllers learn what the network does not take up."""
+    the controllers learn what the network does not take up; ``training`` (the network on the
+    training conditions) falling with it means the network learns them but not the test
+    positions."""
 
     curves: dict[str, list[float]]
     sampled: dict[str, list[float]]
     samples: dict[str, dict[str, int]]
+    #: like ``curves``, on the world's training conditions (mean actions, as at the test positions)
+    training: dict[str, list[float]] = field(default_factory=dict)
     #: the starts a :class:`~modnet.gps.errors.NumericalError` stopped, with its message; their
     #: curves end at the last iteration that finished
     failed: dict[str, str] = field(default_factory=dict)
@@ -352,10 +356,12 @@ def finetune(
     the held-out task's place), ``scratch_shaping`` and ``scratch_no_shaping`` (a freshly
     initialised bank); see :func:`start_config` for each one's cost and first samples.  All
     use ``config``'s seeds.  Returns the :class:`FineTuning` curves ``{start: [mean test
-    distance after 0, 1, ..., iterations iterations]}``, the mean distance of each iteration's
-    samples and each start's sample counts; ``wrong_task`` is left out when there is no wrong
-    task module (None).  ``progress(start, iteration, test_distance, sampled_distance)`` is
-    called after each iteration.
+    distance after 0, 1, ..., iterations iterations]}``, the same on the world's training
+    conditions (the scenes GPS samples, without noise: with four test positions the test curve
+    moves in steps of a whole position), the mean distance of each iteration's samples and each
+    start's sample counts; ``wrong_task`` is left out when there is no wrong task module
+    (None).  ``progress(start, iteration, test_distance, sampled_distance)`` is called after
+    each iteration.
 
     A :class:`~modnet.gps.errors.NumericalError` stops only its own start: the other starts
     still run (each is a fresh trainer with the same seeds), and then :class:`FineTuningFailed`
@@ -364,18 +370,29 @@ def finetune(
     bank_dir = Path(bank_dir)
     result = FineTuning(curves={}, sampled={}, samples={})
     errors: dict[str, NumericalError] = {}
+    scenes = evaluation_env(
+        robot,
+        task,
+        conditions=config.conditions,
+        num_conditions=config.num_conditions,
+        seed=config.condition_seed,
+        horizon=env.horizon,
+        pixels=pixels,
+    )
     for start in starts:
         if start == "wrong_task" and wrong_task is None:
             continue
         bank = _start_bank(bank_dir, start, robot, task, wrong_task, config.seed)
         trainer = GPSTrainer(bank, [(robot, task)], start_config(config, start), pixels=pixels)
-        curve, sampled = [score(bank, robot, task, env).mean], []
-        result.curves[start], result.sampled[start] = curve, sampled
+        curve, on_scenes, sampled = [score(bank, robot, task, env).mean], [], []
+        on_scenes.append(score(bank, robot, task, scenes).mean)
+        result.curves[start], result.training[start], result.sampled[start] = curve, on_scenes, sampled
         try:
             for iteration in range(iterations):
                 (diagnostics,) = trainer.step().values()  # the held-out world is the only one
                 sampled.append(float(diagnostics["distance"]))
                 curve.append(score(bank, robot, task, env).mean)
+                on_scenes.append(score(bank, robot, task, scenes).mean)
                 if progress is not None:
                     progress(start, iteration + 1, curve[-1], sampled[-1])
         except NumericalError as err:
