@@ -34,9 +34,9 @@ import json
 from pathlib import Path
 
 import torch
-from omegaconf import OmegaConf
+from _run_dir import FINISHED, finished_run
 
-from modnet.config import RunConfig
+from modnet.config import RunConfig, saved_run
 from modnet.evaluate import _start_bank, evaluating, evaluation_env, score, start_config
 from modnet.gps.controller import LinearGaussianGains
 from modnet.gps.sampling import WorldSampler
@@ -122,15 +122,10 @@ def main() -> None:
     parser.add_argument("--kl-step", type=float, nargs="+", default=None, help="KL budgets per time step")
     args = parser.parse_args()
 
-    needed = ("results.json", "bank/manifest.json", ".hydra/config.yaml")
-    missing = [name for name in needed if not (args.run_dir / name).exists()]
-    if missing:
-        parser.error(f"{args.run_dir} is not a finished run.py run directory: no {', '.join(missing)}")
-    results = json.loads((args.run_dir / "results.json").read_text())
+    results = finished_run(parser, args.run_dir, (*FINISHED, ".hydra/config.yaml"))
     if args.start == "wrong_task" and "wrong_task" not in results["methods"]:
         parser.error(f"{args.run_dir}'s bank has no wrong task module; valid starts: composed")
-    saved = OmegaConf.load(args.run_dir / ".hydra" / "config.yaml")
-    run: RunConfig = OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(RunConfig), saved))
+    run = saved_run(args.run_dir)
     torch.set_num_threads(run.threads)
     kl_steps = args.kl_step or [run.finetune_gps_config().kl_step]
     if any(not k > 0 for k in kl_steps):

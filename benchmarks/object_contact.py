@@ -30,6 +30,7 @@ from pathlib import Path
 
 import torch
 import yaml
+from _run_dir import FINISHED, finished_run
 from tensordict import TensorDictBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
@@ -85,11 +86,7 @@ def main() -> None:
     parser.add_argument("--world", default=None, help="robot/task instead of the held-out world")
     args = parser.parse_args()
 
-    needed = ("results.json", "bank/manifest.json", ".hydra/config.yaml")
-    missing = [name for name in needed if not (args.run_dir / name).exists()]
-    if missing:
-        parser.error(f"{args.run_dir} is not a finished run.py run directory: no {', '.join(missing)}")
-    results = json.loads((args.run_dir / "results.json").read_text())
+    results = finished_run(parser, args.run_dir, (*FINISHED, ".hydra/config.yaml"))
     world = args.world or results["holdout"]
     worlds = [f"{r}/{t}" for r in results["robots"] for t in results["tasks"]]
     if world not in worlds:

@@ -24,6 +24,7 @@ import time
 from pathlib import Path
 
 import torch
+from _run_dir import FINISHED, finished_run
 
 from modnet.bank import ModuleBank
 from modnet.config import saved_run, validate
@@ -75,11 +76,8 @@ def main() -> None:
     args = parser.parse_args()
     if args.scenes < 2:
         parser.error(f"--scenes must be at least 2 per world (some to fit, some to test), got {args.scenes}")
-    needed = ["results.json", "bank/manifest.json"] + ([".hydra/config.yaml"] if args.before_gps else [])
-    missing = [name for name in needed if not (args.run_dir / name).exists()]
-    if missing:
-        parser.error(f"{args.run_dir} is not a finished run.py run directory: no {', '.join(missing)}")
-    results = json.loads((args.run_dir / "results.json").read_text())
+    config = (".hydra/config.yaml",) if args.before_gps else ()
+    results = finished_run(parser, args.run_dir, (*FINISHED, *config))
     universe = get_universe(results["universe"])
     if not universe.pixels:
         parser.error(f"universe {universe.name!r} reads no images: nothing to probe")

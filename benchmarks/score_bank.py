@@ -18,6 +18,8 @@ import argparse
 import json
 from pathlib import Path
 
+from _run_dir import finished_run
+
 from modnet.bank import ModuleBank
 from modnet.evaluate import evaluating, evaluation_env, score
 from modnet.universes import get_universe, world_name
@@ -30,10 +32,7 @@ def main() -> None:
     parser.add_argument("--num-conditions", type=int, default=None)
     args = parser.parse_args()
 
-    missing = [name for name in ("results.json", "bank/manifest.json") if not (args.run_dir / name).exists()]
-    if missing:
-        parser.error(f"{args.run_dir} is not a finished run.py run directory: no {', '.join(missing)}")
-    results = json.loads((args.run_dir / "results.json").read_text())
+    results = finished_run(parser, args.run_dir)
     universe = get_universe(results["universe"])
     holdout = results["holdout"]
     bank = ModuleBank.load(args.run_dir / "bank")

@@ -368,3 +368,19 @@ def test_first_finetune_iteration_reruns_the_runs_first_iteration_without_noise(
     assert small["kl"] < at_run["kl"]  # the C-steps kept nearer the network
     names = {"network_before", "linearisation", "first_c_step", "last_c_step", "network_after", "untouched"}
     assert names <= set(at_run) and all(at_run[name] >= 0 for name in names)
+
+
+@pytest.mark.parametrize(
+    "script, missing",
+    [
+        ("score_bank.py", "no results.json, bank/manifest.json"),
+        ("object_contact.py", "no results.json, bank/manifest.json, .hydra/config.yaml"),
+        ("first_finetune_iteration.py", "no results.json, bank/manifest.json, .hydra/config.yaml"),
+        ("probe_vision.py", "no results.json, bank/manifest.json"),
+    ],
+)
+def test_run_directory_benchmarks_name_what_an_unfinished_run_lacks_in_one_line(script, missing, tmp_path):
+    (tmp_path / "bank").mkdir()
+    done = run_script(BENCHMARKS / script, str(tmp_path))
+    message = f"{tmp_path} is not a finished run.py run directory: {missing}"
+    assert done.returncode == 2 and message in done.stderr, done.stderr
