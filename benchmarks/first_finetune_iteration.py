@@ -37,31 +37,25 @@ import torch
 from _run_dir import FINISHED, finished_run
 
 from modnet.config import RunConfig, saved_run
-from modnet.evaluate import _start_bank, evaluating, evaluation_env, score, start_config
+from modnet.envs import WorldEnv
+from modnet.evaluate import _start_bank, evaluation_env, rollout, score, start_config, training_env
 from modnet.gps.controller import LinearGaussianGains
-from modnet.gps.sampling import WorldSampler
 from modnet.gps.trainer import GPSTrainer
 
 TRANSFERRED = ("composed", "wrong_task")
 
 
-def final_distance(sampler: WorldSampler, policy) -> torch.Tensor:
-    """Each training condition's final distance under ``policy`` (one rollout per condition)."""
-    td = sampler.env.rollout(sampler.horizon, policy, break_when_any_done=False)
-    return sampler.env.final_distance(td)
-
-
-def controller_distance(
-    sampler: WorldSampler, trainer: GPSTrainer, gains: LinearGaussianGains
-) -> torch.Tensor:
-    """``final_distance`` of the held-out world's controllers with ``gains``, mean actions only."""
+def controller_distance(scenes: WorldEnv, trainer: GPSTrainer, gains: LinearGaussianGains) -> float:
+    """Mean final distance of the held-out world's controllers with ``gains`` on ``scenes`` (its
+    training conditions), mean actions only."""
     (state,) = trainer.states.values()
     controller, kept = state.controller, state.controller.gains
     controller.set_gains(gains)
     controller.deterministic = True
     try:
         with torch.no_grad():
-            return final_distance(sampler, controller)
+            td = scenes.rollout(scenes.horizon, controller, break_when_any_done=False)
+        return float(scenes.final_distance(td).mean())
     finally:
         controller.deterministic = None
         controller.set_gains(kept)
@@ -73,18 +67,8 @@ def first_iteration(run_dir: Path, run: RunConfig, results: dict, start: str, kl
     config = start_config(dataclasses.replace(run.finetune_gps_config(), kl_step=kl_step), start)
     bank = _start_bank(run_dir / "bank", start, robot, task, wrong_task, config.seed)
     trainer = GPSTrainer(bank, [(robot, task)], config)
-    sampler = WorldSampler(
-        robot,
-        task,
-        conditions=config.conditions,
-        samples_per_condition=1,
-        horizon=config.horizon,
-        shaping=False,
-        seed=config.condition_seed,
-        num_conditions=config.num_conditions,
-    )
-    with evaluating(bank):
-        before = final_distance(sampler, bank.compose(robot, task))
+    scenes = training_env(robot, task, config, horizon=results["horizon"])
+    before = score(bank, robot, task, scenes)
 
     c_steps: list[LinearGaussianGains] = []
     c_step = trainer._c_step
@@ -96,20 +80,18 @@ def first_iteration(run_dir: Path, run: RunConfig, results: dict, start: str, kl
     trainer._c_step = recording_c_step
     (diagnostics,) = trainer.step().values()
     (state,) = trainer.states.values()
+    after, _ = rollout(bank, robot, task, scenes)
+    test_positions = evaluation_env(robot, task, horizon=results["horizon"])
     distances = {
-        "network_before": before,
-        "linearisation": controller_distance(sampler, trainer, state.current.gains),
-        "first_c_step": controller_distance(sampler, trainer, c_steps[0]),
-        "last_c_step": controller_distance(sampler, trainer, c_steps[-1]),
+        "network_before": before.mean,
+        "linearisation": controller_distance(scenes, trainer, state.current.gains),
+        "first_c_step": controller_distance(scenes, trainer, c_steps[0]),
+        "last_c_step": controller_distance(scenes, trainer, c_steps[-1]),
+        "network_after": float(scenes.final_distance(after).mean()),
+        "untouched": float(scenes.start_distance(after).mean()),
+        "network_after_test": score(bank, robot, task, test_positions).mean,
     }
-    with evaluating(bank):
-        distances["network_after"] = final_distance(sampler, bank.compose(robot, task))
-        distances["untouched"] = sampler.env.start_distance(
-            sampler.env.rollout(1, bank.compose(robot, task), break_when_any_done=False)
-        )
-    test_env = evaluation_env(robot, task, horizon=results["horizon"])
-    out = {name: round(float(d.mean()), 4) for name, d in distances.items()}
-    out["network_after_test"] = round(score(bank, robot, task, test_env).mean, 4)
+    out = {name: round(d, 4) for name, d in distances.items()}
     out["sampled"] = round(float(diagnostics["distance"]), 4)
     out["kl"] = round(float(diagnostics["kl"]), 2)
     return out

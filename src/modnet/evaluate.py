@@ -63,6 +63,7 @@ __all__ = [
     "rollout",
     "score",
     "start_config",
+    "training_env",
     "zero_shot",
 ]
 
@@ -169,6 +170,22 @@ def evaluation_env(
         seed=seed,
         num_conditions=num_conditions,
         horizon=horizon,
+    )
+
+
+def training_env(
+    robot: str, task: str, config: GPSConfig, *, horizon: int | None = None, pixels: bool = False
+) -> WorldEnv:
+    """One env copy per training condition of ``config`` (the scenes its GPS samples), to score
+    a network where it trains; ``horizon`` defaults to ``config.horizon``."""
+    return evaluation_env(
+        robot,
+        task,
+        conditions=config.conditions,
+        num_conditions=config.num_conditions,
+        seed=config.condition_seed,
+        horizon=config.horizon if horizon is None else horizon,
+        pixels=pixels,
     )
 
 
@@ -370,15 +387,7 @@ def finetune(
     bank_dir = Path(bank_dir)
     result = FineTuning(curves={}, sampled={}, samples={})
     errors: dict[str, NumericalError] = {}
-    scenes = evaluation_env(
-        robot,
-        task,
-        conditions=config.conditions,
-        num_conditions=config.num_conditions,
-        seed=config.condition_seed,
-        horizon=env.horizon,
-        pixels=pixels,
-    )
+    scenes = training_env(robot, task, config, horizon=env.horizon, pixels=pixels)
     for start in starts:
         if start == "wrong_task" and wrong_task is None:
             continue
