@@ -209,7 +209,14 @@ def compare_finetuning(
             print(f"fine-tuning from {start} stopped: {message}")
     title = f"fine-tuning {world_name(split.holdout)}"
     success = get_world(*split.holdout).task.success_distance
-    report.plot_finetune(tuning.curves, success, run_dir / "finetune.png", title=title, failed=tuning.failed)
+    report.plot_finetune(
+        tuning.curves,
+        success,
+        run_dir / "finetune.png",
+        title=title,
+        failed=tuning.failed,
+        training=tuning.training,
+    )
     for name, curve in tuning.curves.items():
         for i, distance in enumerate(curve):
             log.scalars({f"finetune/{name}/distance": distance}, step=i)

@@ -265,9 +265,18 @@ def plot_finetune(
     path: str | os.PathLike | None = None,
     title: str = "",
     failed: Collection[str] = (),
+    training: Mapping[str, Sequence[float]] | None = None,
 ) -> Figure:
     """The neural network policy's mean test distance per fine-tuning iteration, one line per start;
-    the ``failed`` starts (stopped by a numerical failure) end in a cross and say so."""
+    the ``failed`` starts (stopped by a numerical failure) end in a cross and say so.
+    ``training`` (per start, the same on the world's training conditions) adds each start's
+    dotted line in its colour: a few test positions, each solved or not, can belie it.
+
+    Examples:
+        >>> fig = plot_finetune({"composed": [0.15, 0.1]}, 0.05, training={"composed": [0.17, 0.12]})
+        >>> [line.get_linestyle() for line in fig.axes[0].get_lines()]  # the last one: its legend key
+        ['-', ':', '--', ':']
+    """
     fig = Figure(figsize=(5.5, 3.6), layout="constrained")
     ax = fig.subplots()
     for start, curve in curves.items():
@@ -275,10 +284,14 @@ def plot_finetune(
         (line,) = ax.plot(range(len(curve)), curve, marker=".", label=label)
         if start in failed:
             ax.plot(len(curve) - 1, curve[-1], marker="x", ms=9, color=line.get_color())
+        if training and start in training:
+            ax.plot(range(len(training[start])), training[start], ls=":", color=line.get_color())
     ax.axhline(success_distance, color="k", lw=0.8, ls="--", label="success distance")
+    if training:
+        ax.plot([], [], ls=":", color="grey", label="dotted: training conditions")
     ax.set_xlabel("GPS iteration on the held-out world")
     ax.xaxis.set_major_locator(MaxNLocator(integer=True))
-    ax.set_ylabel("mean test distance")
+    ax.set_ylabel("mean distance (solid: test positions)" if training else "mean test distance")
     ax.set_title(title or "fine-tuning")
     ax.legend(fontsize="small")
     return _save(fig, path)
