@@ -393,8 +393,8 @@ def finetune(
             continue
         bank = _start_bank(bank_dir, start, robot, task, wrong_task, config.seed)
         trainer = GPSTrainer(bank, [(robot, task)], start_config(config, start), pixels=pixels)
-        curve, on_scenes, sampled = [score(bank, robot, task, env).mean], [], []
-        on_scenes.append(score(bank, robot, task, scenes).mean)
+        curve, sampled = [score(bank, robot, task, env).mean], []
+        on_scenes = [score(bank, robot, task, scenes).mean]
         result.curves[start], result.training[start], result.sampled[start] = curve, on_scenes, sampled
         try:
             for iteration in range(iterations):
