@@ -63,6 +63,9 @@ def test_overrides_reach_the_library_configs():
     small_steps = composed("universe=tiny", "eval.finetune_kl_step=0.2")
     assert small_steps.finetune_gps_config() == dataclasses.replace(small_steps.gps_config(), kl_step=0.2)
     assert small_steps.gps_config().kl_step == GPSConfig.kl_step  # training keeps its trust region
+    long_s_step = composed("universe=tiny", "eval.finetune_sgd_steps=4000")
+    assert long_s_step.finetune_gps_config() == dataclasses.replace(long_s_step.gps_config(), sgd_steps=4000)
+    assert long_s_step.gps_config().sgd_steps != 4000  # training keeps its S-step
 
 
 def test_literal_choices_and_values_no_type_rules_out_fail_with_the_key():
@@ -79,6 +82,7 @@ def test_literal_choices_and_values_no_type_rules_out_fail_with_the_key():
         ("gps.badmm.max_policy_weight", 1e-3, r"gps\.badmm: .*max_policy_weight, got 1e-06 / 0.005 / 0.001"),
         ("eval.finetune_samples_per_condition", 0, r"eval\.finetune_samples_per_condition must be at"),
         ("eval.finetune_kl_step", 0.0, r"eval\.finetune_kl_step must be positive"),
+        ("eval.finetune_sgd_steps", 0, r"eval\.finetune_sgd_steps must be at least 1"),
         ("gps.kl_step", -1.0, r"gps\.kl_step must be positive, got -1\.0"),
     ]:
         run = RunConfig(universe="tiny")

@@ -179,6 +179,8 @@ class EvalConfig:
             for fine-tuning only; not part of a checkpoint's identity either).
         finetune_kl_step: the C-step's KL budget per time step in every fine-tuning start
             (None: ``gps.kl_step``); not part of a checkpoint's identity.
+        finetune_sgd_steps: the S-step's SGD steps per iteration in every fine-tuning start
+            (None: ``gps.sgd_steps``); not part of a checkpoint's identity.
     """
 
     conditions: str = "test"
@@ -194,6 +196,7 @@ class EvalConfig:
     finetune_samples_per_condition: int | None = None
     finetune_sample_on_policy: bool = False
     finetune_kl_step: float | None = None
+    finetune_sgd_steps: int | None = None
 
 
 @dataclass
@@ -249,8 +252,9 @@ class RunConfig:
 
     def finetune_gps_config(self) -> GPSConfig:
         """The :class:`GPSConfig` of the fine-tuning starts: the training's, with
-        ``eval.finetune_samples_per_condition`` and ``eval.finetune_kl_step`` when set, and
-        sampling the policy with ``eval.finetune_sample_on_policy``.
+        ``eval.finetune_samples_per_condition``, ``eval.finetune_kl_step`` and
+        ``eval.finetune_sgd_steps`` when set, and sampling the policy with
+        ``eval.finetune_sample_on_policy``.
 
         Examples:
             >>> run = RunConfig(universe="tiny", eval=EvalConfig(finetune_samples_per_condition=20))
@@ -264,6 +268,8 @@ class RunConfig:
             changes["sample_on_policy"] = True
         if self.eval.finetune_kl_step is not None:
             changes["kl_step"] = self.eval.finetune_kl_step
+        if self.eval.finetune_sgd_steps is not None:
+            changes["sgd_steps"] = self.eval.finetune_sgd_steps
         return self.gps_config(**changes)
 
     def bank_config(self) -> BankConfig:
@@ -308,6 +314,11 @@ class RunConfig:
         kl_step = self.eval.finetune_kl_step
         if kl_step is not None and not kl_step > 0:
             raise ConfigError(f"eval.finetune_kl_step must be positive (or null: gps.kl_step), got {kl_step}")
+        sgd_steps = self.eval.finetune_sgd_steps
+        if sgd_steps is not None and sgd_steps < 1:
+            raise ConfigError(
+                f"eval.finetune_sgd_steps must be at least 1 (or null: gps.sgd_steps), got {sgd_steps}"
+            )
         unknown = sorted(set(self.eval.finetune_starts) - set(FINETUNE_STARTS))
         if unknown:
             raise ConfigError(f"eval.finetune_starts: unknown {unknown}; valid: {', '.join(FINETUNE_STARTS)}")
