@@ -66,6 +66,13 @@ def test_overrides_reach_the_library_configs():
     long_s_step = composed("universe=tiny", "eval.finetune_sgd_steps=4000")
     assert long_s_step.finetune_gps_config() == dataclasses.replace(long_s_step.gps_config(), sgd_steps=4000)
     assert long_s_step.gps_config().sgd_steps != 4000  # training keeps its S-step
+    per_condition = composed("universe=tiny", "eval.finetune_dynamics_prior_per_condition=true")
+    assert per_condition.finetune_gps_config() == dataclasses.replace(
+        per_condition.gps_config(), dynamics_prior_per_condition=True
+    )
+    assert not per_condition.gps_config().dynamics_prior_per_condition  # training keeps one per world
+    inherited = composed("universe=tiny", "gps.dynamics_prior_per_condition=true")
+    assert inherited.finetune_gps_config().dynamics_prior_per_condition  # null: training's choice
 
 
 def test_literal_choices_and_values_no_type_rules_out_fail_with_the_key():

@@ -181,6 +181,9 @@ class EvalConfig:
             (None: ``gps.kl_step``); not part of a checkpoint's identity.
         finetune_sgd_steps: the S-step's SGD steps per iteration in every fine-tuning start
             (None: ``gps.sgd_steps``); not part of a checkpoint's identity.
+        finetune_dynamics_prior_per_condition: every fine-tuning start keeps one dynamics
+            prior per condition (True) or one over all conditions (False); None:
+            ``gps.dynamics_prior_per_condition``. Not part of a checkpoint's identity.
     """
 
     conditions: str = "test"
@@ -197,6 +200,7 @@ class EvalConfig:
     finetune_sample_on_policy: bool = False
     finetune_kl_step: float | None = None
     finetune_sgd_steps: int | None = None
+    finetune_dynamics_prior_per_condition: bool | None = None
 
 
 @dataclass
@@ -252,9 +256,9 @@ class RunConfig:
 
     def finetune_gps_config(self) -> GPSConfig:
         """The :class:`GPSConfig` of the fine-tuning starts: the training's, with
-        ``eval.finetune_samples_per_condition``, ``eval.finetune_kl_step`` and
-        ``eval.finetune_sgd_steps`` when set, and sampling the policy with
-        ``eval.finetune_sample_on_policy``.
+        ``eval.finetune_samples_per_condition``, ``eval.finetune_kl_step``,
+        ``eval.finetune_sgd_steps`` and ``eval.finetune_dynamics_prior_per_condition`` when
+        set, and sampling the policy with ``eval.finetune_sample_on_policy``.
 
         Examples:
             >>> run = RunConfig(universe="tiny", eval=EvalConfig(finetune_samples_per_condition=20))
@@ -270,6 +274,8 @@ class RunConfig:
             changes["kl_step"] = self.eval.finetune_kl_step
         if self.eval.finetune_sgd_steps is not None:
             changes["sgd_steps"] = self.eval.finetune_sgd_steps
+        if self.eval.finetune_dynamics_prior_per_condition is not None:
+            changes["dynamics_prior_per_condition"] = self.eval.finetune_dynamics_prior_per_condition
         return self.gps_config(**changes)
 
     def bank_config(self) -> BankConfig:
