@@ -203,6 +203,11 @@ class EvalConfig:
     finetune_dynamics_prior_per_condition: bool | None = None
 
 
+#: the GPSConfig fields an ``eval.finetune_<field>`` sets for the fine-tuning starts alone
+#: (``None``: training's value)
+FINETUNE_GPS_OVERRIDES = ("samples_per_condition", "kl_step", "sgd_steps", "dynamics_prior_per_condition")
+
+
 @dataclass
 class LoggerConfig:
     """Where metrics, the resolved config and figures go (``torchrl.record.loggers``).
@@ -265,17 +270,13 @@ class RunConfig:
             >>> run.gps_config().samples_per_condition, run.finetune_gps_config().samples_per_condition
             (5, 20)
         """
-        changes: dict[str, Any] = {}
-        if self.eval.finetune_samples_per_condition is not None:
-            changes["samples_per_condition"] = self.eval.finetune_samples_per_condition
+        changes: dict[str, Any] = {
+            name: value
+            for name in FINETUNE_GPS_OVERRIDES
+            if (value := getattr(self.eval, f"finetune_{name}")) is not None
+        }
         if self.eval.finetune_sample_on_policy:
             changes["sample_on_policy"] = True
-        if self.eval.finetune_kl_step is not None:
-            changes["kl_step"] = self.eval.finetune_kl_step
-        if self.eval.finetune_sgd_steps is not None:
-            changes["sgd_steps"] = self.eval.finetune_sgd_steps
-        if self.eval.finetune_dynamics_prior_per_condition is not None:
-            changes["dynamics_prior_per_condition"] = self.eval.finetune_dynamics_prior_per_condition
         return self.gps_config(**changes)
 
     def bank_config(self) -> BankConfig:
