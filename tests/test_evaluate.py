@@ -9,6 +9,7 @@ from modnet.evaluate import (
     FINETUNE_STARTS,
     Scores,
     _start_bank,
+    bank_tasks,
     evaluation_env,
     finetune,
     rollout,
@@ -129,6 +130,18 @@ def test_finetuning_starts_set_up_the_held_out_world_as_described(tmp_path):
     assert same(wrong.get("task", "reach_black"), saved["reach_red"])
     scratch = _start_bank(tmp_path / "bank", "scratch_shaping", *HELD_OUT, None, seed=0)
     assert not same(scratch.get("task", "reach_black"), saved["reach_black"])
+
+
+def test_a_monolithic_wrong_task_start_is_the_same_robot_s_network_for_the_wrong_task(tmp_path):
+    bank = ModuleBank.build(ROBOTS, TASKS, policy="monolithic", seed=7)
+    bank.save(tmp_path / "bank")
+    assert bank_tasks(bank) == tuple(TASKS)
+    wrong = _start_bank(tmp_path / "bank", "wrong_task", *HELD_OUT, "reach_red", seed=0)
+    expected = bank.get("world", "four_link-reach_red").state_dict()
+    loaded = wrong.get("world", "four_link-reach_black").state_dict()
+    own = bank.get("world", "four_link-reach_black").state_dict()
+    assert not torch.equal(own["module.trunk.0.weight"], expected["module.trunk.0.weight"])
+    assert all(torch.equal(v, expected[k]) for k, v in loaded.items())
 
 
 def test_only_scratch_with_shaping_keeps_the_shaping_term():

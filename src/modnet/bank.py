@@ -63,6 +63,24 @@ __all__ = ["BankConfig", "BankError", "ModuleBank", "World"]
 World = tuple[str, ...]  # one module name per factor, root (action-writing) factor first
 ROBOT_TASK = ("task", "robot")
 MONOLITHIC = "world"  # the one factor of a monolithic bank: a network per world
+
+
+def monolithic_name(world: Sequence[str]) -> str:
+    """The name of a monolithic bank's network for ``world``: ``"ROBOT-TASK"``.
+
+    Examples:
+        >>> monolithic_name(("three_link", "reach_red"))
+        'three_link-reach_red'
+        >>> monolithic_world(monolithic_name(("three_link", "reach_red")))
+        ('three_link', 'reach_red')
+    """
+    return "-".join(world)
+
+
+def monolithic_world(name: str) -> tuple[str, str]:
+    """``(robot, task)`` of a monolithic network's ``name``: the inverse of :func:`monolithic_name`."""
+    robot, _, task = name.partition("-")
+    return robot, task
 MANIFEST = "manifest.json"
 FORMAT = "modnet.bank/1"
 _SPECS: dict[str, Callable[[str], object]] = {"robot": robot_spec, "task": task_spec}
@@ -323,7 +341,7 @@ class ModuleBank(nn.Module):
             task_spec(task)
         bank = cls(ROBOT_TASK, config=config, pixels=pixels, policy=policy)
         if policy == "monolithic":
-            slots = [(MONOLITHIC, "-".join((r, k))) for r in robots for k in tasks]
+            slots = [(MONOLITHIC, monolithic_name((r, k))) for r in robots for k in tasks]
         else:
             slots = [("task", k) for k in tasks] + [("robot", r) for r in robots]
         for factor, name in slots:
@@ -340,7 +358,8 @@ class ModuleBank(nn.Module):
         if factor == "robot":
             robot = robot_spec(name)
             return self.config.robot_arch(robot.state_dim, robot.action_dim)
-        robot, task = (robot_spec(name.split("-")[0]), task_spec(name.split("-")[-1]))
+        robot_name, task_name = monolithic_world(name)
+        robot, task = robot_spec(robot_name), task_spec(task_name)
         return self.config.monolithic_arch(robot.state_dim, task.state_dim, robot.action_dim, self.pixels)
 
     def add(self, factor: str, name: str, module: BankModule) -> BankModule:
@@ -415,7 +434,7 @@ class ModuleBank(nn.Module):
             for factor, name in zip(self.world_factors, world, strict=True):
                 if factor in _SPECS:
                     _SPECS[factor](name)
-            return OrderedDict([(MONOLITHIC, self.get(MONOLITHIC, "-".join(world)))])
+            return OrderedDict([(MONOLITHIC, self.get(MONOLITHIC, monolithic_name(world)))])
         parts = OrderedDict((f, self.get(f, n)) for f, n in zip(self.world_factors, world, strict=True))
         parts = OrderedDict(reversed(parts.items()))
         written: dict[NestedKey, int] = {}
@@ -565,7 +584,7 @@ class ModuleBank(nn.Module):
             [('robot', 'three_link'), ('task', 'reach')]
         """
         if self.policy == "monolithic":
-            return [(MONOLITHIC, "-".join(world))]
+            return [(MONOLITHIC, monolithic_name(world))]
         return list(zip(self.world_factors, world, strict=True))
 
     def mark_trained(self, *names: str, **by_factor: str) -> None:

@@ -45,7 +45,7 @@ import torch
 from tensordict import TensorDictBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from modnet.bank import MONOLITHIC, ModuleBank
+from modnet.bank import MONOLITHIC, ModuleBank, monolithic_name, monolithic_world
 from modnet.envs import WorldEnv, make_env
 from modnet.gps.errors import NumericalError
 from modnet.gps.trainer import GPSConfig, GPSTrainer
@@ -288,7 +288,7 @@ def zero_shot(
 def bank_tasks(bank: ModuleBank) -> tuple[str, ...]:
     """The tasks a robot/task bank holds modules (or, monolithic, networks) for."""
     if bank.policy == "monolithic":
-        return tuple(dict.fromkeys(name.split("-")[-1] for name in bank.names(MONOLITHIC)))
+        return tuple(dict.fromkeys(monolithic_world(name)[1] for name in bank.names(MONOLITHIC)))
     return bank.names("task")
 
 
@@ -297,7 +297,8 @@ def _start_bank(bank_dir: Path, start: str, robot: str, task: str, wrong_task: s
     bank = ModuleBank.load(bank_dir)
     if start == "wrong_task":
         if bank.policy == "monolithic":
-            bank.load_module(bank_dir, MONOLITHIC, f"{robot}-{wrong_task}", into=f"{robot}-{task}")
+            wrong, own = monolithic_name((robot, wrong_task)), monolithic_name((robot, task))
+            bank.load_module(bank_dir, MONOLITHIC, wrong, into=own)
         else:
             bank.load_module(bank_dir, "task", wrong_task, into=task)
     elif start.startswith("scratch"):
