@@ -63,6 +63,11 @@ __all__ = ["BankConfig", "BankError", "ModuleBank", "World"]
 World = tuple[str, ...]  # one module name per factor, root (action-writing) factor first
 ROBOT_TASK = ("task", "robot")
 MONOLITHIC = "world"  # the one factor of a monolithic bank: a network per world
+MANIFEST = "manifest.json"
+FORMAT = "modnet.bank/1"
+_SPECS: dict[str, Callable[[str], object]] = {"robot": robot_spec, "task": task_spec}
+_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_\-]*")
+_RESERVED = frozenset(dir(nn.ModuleDict()))  # "train", "eval", "type", "keys", ...
 
 
 def monolithic_name(world: Sequence[str]) -> str:
@@ -81,11 +86,6 @@ def monolithic_world(name: str) -> tuple[str, str]:
     """``(robot, task)`` of a monolithic network's ``name``: the inverse of :func:`monolithic_name`."""
     robot, _, task = name.partition("-")
     return robot, task
-MANIFEST = "manifest.json"
-FORMAT = "modnet.bank/1"
-_SPECS: dict[str, Callable[[str], object]] = {"robot": robot_spec, "task": task_spec}
-_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_\-]*")
-_RESERVED = frozenset(dir(nn.ModuleDict()))  # "train", "eval", "type", "keys", ...
 
 
 class BankError(ValueError):
