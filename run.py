@@ -62,6 +62,7 @@ NEWER_OPTIONS = {
     "gps.train_convolutions": True,
     "gps.clip_targets": False,
     "gps.sample_on_policy": False,
+    "gps.policy_linearization": "regression",
 }
 
 

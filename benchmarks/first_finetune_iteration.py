@@ -18,11 +18,14 @@ on a finished run's bank, as ``run.py finetune=true`` does, and rolls out with m
 ``network_after_test`` is the network after the iteration at the test positions, the second
 point of the run's fine-tuning curve (``run_curve_1``): the two agree when this reran the
 run's iteration.  ``--kl-step`` repeats everything at each KL budget (the run's
-``eval.finetune_kl_step``, else ``gps.kl_step``, when not given).
+``eval.finetune_kl_step``, else ``gps.kl_step``, when not given). ``--policy-linearization``
+linearises the network by regression or by its Jacobian (``gps.policy_linearization``; the
+run's fine-tuning choice when not given).
 
 Prints a line per KL budget, then ONE JSON object on its last line.
 
     python benchmarks/first_finetune_iteration.py outputs/manipulation --kl-step 1.0 0.2
+    python benchmarks/first_finetune_iteration.py outputs/manipulation --policy-linearization jacobian
 """
 
 from __future__ import annotations
@@ -40,7 +43,7 @@ from modnet.config import RunConfig, saved_run
 from modnet.envs import WorldEnv
 from modnet.evaluate import _start_bank, evaluation_env, rollout, score, start_config, training_env
 from modnet.gps.controller import LinearGaussianGains
-from modnet.gps.trainer import GPSTrainer
+from modnet.gps.trainer import POLICY_LINEARIZATIONS, GPSTrainer
 
 TRANSFERRED = ("composed", "wrong_task")
 
@@ -61,10 +64,13 @@ def controller_distance(scenes: WorldEnv, trainer: GPSTrainer, gains: LinearGaus
         controller.set_gains(kept)
 
 
-def first_iteration(run_dir: Path, run: RunConfig, results: dict, start: str, kl_step: float) -> dict:
+def first_iteration(
+    run_dir: Path, run: RunConfig, results: dict, start: str, kl_step: float, linearization: str
+) -> dict:
     robot, task = results["holdout"].split("/")
     wrong_task = results["methods"]["wrong_task"]["task"] if "wrong_task" in results["methods"] else None
-    config = start_config(dataclasses.replace(run.finetune_gps_config(), kl_step=kl_step), start)
+    config = dataclasses.replace(run.finetune_gps_config(), policy_linearization=linearization)
+    config = start_config(dataclasses.replace(config, kl_step=kl_step), start)
     bank = _start_bank(run_dir / "bank", start, robot, task, wrong_task, config.seed)
     trainer = GPSTrainer(bank, [(robot, task)], config)
     scenes = training_env(robot, task, config, horizon=results["horizon"])
@@ -102,6 +108,12 @@ def main() -> None:
     parser.add_argument("run_dir", type=Path, help="a finished run.py run directory with finetune=true")
     parser.add_argument("--start", choices=TRANSFERRED, default="composed")
     parser.add_argument("--kl-step", type=float, nargs="+", default=None, help="KL budgets per time step")
+    parser.add_argument(
+        "--policy-linearization",
+        choices=POLICY_LINEARIZATIONS,
+        default=None,
+        help="how the network is linearised (default: the run's fine-tuning choice)",
+    )
     args = parser.parse_args()
 
     results = finished_run(parser, args.run_dir, (*FINISHED, ".hydra/config.yaml"))
@@ -110,6 +122,7 @@ def main() -> None:
     run = saved_run(args.run_dir)
     torch.set_num_threads(run.threads)
     kl_steps = args.kl_step or [run.finetune_gps_config().kl_step]
+    linearization = args.policy_linearization or run.finetune_gps_config().policy_linearization
     if any(not k > 0 for k in kl_steps):
         parser.error(f"--kl-step must be positive, got {kl_steps}")
 
@@ -120,10 +133,11 @@ def main() -> None:
         "start": args.start,
         "run_curve_1": curve[1] if curve and len(curve) > 1 else None,
         "run_kl_step": run.finetune_gps_config().kl_step,
+        "policy_linearization": linearization,
         "by_kl_step": {},
     }
     for kl_step in kl_steps:
-        figures = first_iteration(args.run_dir, run, results, args.start, kl_step)
+        figures = first_iteration(args.run_dir, run, results, args.start, kl_step, linearization)
         out["by_kl_step"][str(kl_step)] = figures
         print(f"kl_step {kl_step:g}: " + ", ".join(f"{k} {v:g}" for k, v in figures.items()), flush=True)
     print(json.dumps(out))

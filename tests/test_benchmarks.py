@@ -368,6 +368,12 @@ def test_first_finetune_iteration_reruns_the_runs_first_iteration_without_noise(
     assert small["kl"] < at_run["kl"]  # the C-steps kept nearer the network
     names = {"network_before", "linearisation", "first_c_step", "last_c_step", "network_after", "untouched"}
     assert names <= set(at_run) and all(at_run[name] >= 0 for name in names)
+    assert out["policy_linearization"] == "regression"  # the run's
+    by_jacobian = last_json("first_finetune_iteration.py", str(run_dir), "--policy-linearization", "jacobian")
+    exact = by_jacobian["by_kl_step"]["1.0"]
+    assert by_jacobian["policy_linearization"] == "jacobian"
+    assert exact["network_before"] == at_run["network_before"]  # the same bank and samples,
+    assert exact["linearisation"] != at_run["linearisation"]  # linearised another way
 
 
 @pytest.mark.parametrize(

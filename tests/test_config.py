@@ -13,6 +13,7 @@ from modnet.bank import BankConfig
 from modnet.config import (
     BankSchema,
     ConfigError,
+    EvalConfig,
     GPSSchema,
     RunConfig,
     flatten,
@@ -73,6 +74,10 @@ def test_overrides_reach_the_library_configs():
     assert not per_condition.gps_config().dynamics_prior_per_condition  # training keeps one per world
     inherited = composed("universe=tiny", "gps.dynamics_prior_per_condition=true")
     assert inherited.finetune_gps_config().dynamics_prior_per_condition  # null: training's choice
+    exact = composed("universe=tiny", "eval.finetune_policy_linearization=jacobian")
+    by_jacobian = dataclasses.replace(exact.gps_config(), policy_linearization="jacobian")
+    assert exact.finetune_gps_config() == by_jacobian
+    assert exact.gps_config().policy_linearization == "regression"  # training regresses, as the GPS code
 
 
 def test_literal_choices_and_values_no_type_rules_out_fail_with_the_key():
@@ -171,6 +176,14 @@ def test_validation_names_what_is_missing_and_the_valid_choices():
     run.pretrain.images = 100
     with pytest.raises(ConfigError, match="'tiny' has none: use an image universe or pretrain.images=0"):
         validate(run)
+    with pytest.raises(ConfigError, match="policy_linearization must be one of regression, jacobian"):
+        validate(RunConfig(universe="tiny", eval=EvalConfig(finetune_policy_linearization="exact")))
+    for run in (
+        RunConfig(universe="color_reach", eval=EvalConfig(finetune_policy_linearization="jacobian")),
+        composed("universe=color_reach", "gps.policy_linearization=jacobian"),
+    ):  # before any training: fine-tuning comes after it
+        with pytest.raises(ConfigError, match="policy_linearization=jacobian .* 'color_reach' reads images"):
+            validate(run)
 
 
 def test_a_held_out_robot_or_task_that_no_training_world_covers_is_refused():

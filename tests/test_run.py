@@ -404,6 +404,7 @@ def test_options_at_their_do_nothing_defaults_stay_out_of_the_checkpoint_identit
     assert not any(k.startswith("pretrain.") or k == "bank.softmax_temperature" for k in plain)
     assert "gps.dynamics_ridge" not in plain and "gps.noise_smoothing" not in plain
     assert "gps.train_convolutions" not in plain and "gps.clip_targets" not in plain
+    assert "gps.policy_linearization" not in plain
     options = [
         "gps.dynamics_ridge=1e-3",
         "gps.noise_smoothing=2",

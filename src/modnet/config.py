@@ -34,7 +34,7 @@ from modnet.bank import BankConfig, ModuleBank
 from modnet.evaluate import FINETUNE_STARTS
 from modnet.gps.badmm import BADMMConfig
 from modnet.gps.dynamics import DynamicsPriorConfig
-from modnet.gps.trainer import GPSConfig
+from modnet.gps.trainer import POLICY_LINEARIZATIONS, GPSConfig
 from modnet.pretrain import PretrainConfig
 from modnet.universes import Split, Universe, get_universe
 from modnet.worlds import CONDITION_SETS, NUM_FIXED_CONDITIONS
@@ -184,6 +184,10 @@ class EvalConfig:
         finetune_dynamics_prior_per_condition: every fine-tuning start keeps one dynamics
             prior per condition (True) or one over all conditions (False); None:
             ``gps.dynamics_prior_per_condition``. Not part of a checkpoint's identity.
+        finetune_policy_linearization: how every fine-tuning start linearises the composed
+            policy ("regression" or "jacobian", :class:`~modnet.gps.GPSConfig`'s
+            ``policy_linearization``); None: ``gps.policy_linearization``. Not part of a
+            checkpoint's identity.
     """
 
     conditions: str = "test"
@@ -201,11 +205,18 @@ class EvalConfig:
     finetune_kl_step: float | None = None
     finetune_sgd_steps: int | None = None
     finetune_dynamics_prior_per_condition: bool | None = None
+    finetune_policy_linearization: str | None = None
 
 
 #: the GPSConfig fields an ``eval.finetune_<field>`` sets for the fine-tuning starts alone
 #: (``None``: training's value)
-FINETUNE_GPS_OVERRIDES = ("samples_per_condition", "kl_step", "sgd_steps", "dynamics_prior_per_condition")
+FINETUNE_GPS_OVERRIDES = (
+    "samples_per_condition",
+    "kl_step",
+    "sgd_steps",
+    "dynamics_prior_per_condition",
+    "policy_linearization",
+)
 
 
 @dataclass
@@ -262,8 +273,9 @@ class RunConfig:
     def finetune_gps_config(self) -> GPSConfig:
         """The :class:`GPSConfig` of the fine-tuning starts: the training's, with
         ``eval.finetune_samples_per_condition``, ``eval.finetune_kl_step``,
-        ``eval.finetune_sgd_steps`` and ``eval.finetune_dynamics_prior_per_condition`` when
-        set, and sampling the policy with ``eval.finetune_sample_on_policy``.
+        ``eval.finetune_sgd_steps``, ``eval.finetune_dynamics_prior_per_condition`` and
+        ``eval.finetune_policy_linearization`` when set, and sampling the policy with
+        ``eval.finetune_sample_on_policy``.
 
         Examples:
             >>> run = RunConfig(universe="tiny", eval=EvalConfig(finetune_samples_per_condition=20))
@@ -326,6 +338,12 @@ class RunConfig:
             raise ConfigError(
                 f"eval.finetune_sgd_steps must be at least 1 (or null: gps.sgd_steps), got {sgd_steps}"
             )
+        linearization = self.eval.finetune_policy_linearization
+        if linearization is not None and linearization not in POLICY_LINEARIZATIONS:
+            raise ConfigError(
+                f"eval.finetune_policy_linearization must be one of {', '.join(POLICY_LINEARIZATIONS)} "
+                f"(or null: gps.policy_linearization), got {linearization!r}"
+            )
         unknown = sorted(set(self.eval.finetune_starts) - set(FINETUNE_STARTS))
         if unknown:
             raise ConfigError(f"eval.finetune_starts: unknown {unknown}; valid: {', '.join(FINETUNE_STARTS)}")
@@ -358,6 +376,15 @@ def validate(run: RunConfig) -> tuple[Universe, Split]:
             f"pretrain.images={run.pretrain.images} pretrains vision task modules, and universe "
             f"{universe.name!r} has none: use an image universe or pretrain.images=0"
         )
+    for name, config in (
+        ("gps.policy_linearization", run.gps_config()),
+        ("eval.finetune_policy_linearization", run.finetune_gps_config()),
+    ):
+        if universe.pixels and config.policy_linearization == "jacobian":
+            raise ConfigError(
+                f"{name}=jacobian differentiates a policy that reads the state, and universe "
+                f"{universe.name!r} reads images: use regression"
+            )
     return universe, split
 
 

@@ -14,6 +14,7 @@ from modnet.gps.dynamics import (
     conditional_gaussian_fit,
     fit_dynamics,
     fit_policy_linearization,
+    policy_linearization_from_jacobian,
 )
 from modnet.gps.errors import NumericalError
 
@@ -164,6 +165,38 @@ def test_policy_linearisation_recovers_linear_policy():
     torch.testing.assert_close(lin.k, k_true.expand(M, T, dU), atol=0.02, rtol=0)
     torch.testing.assert_close(
         lin.cov, 0.3 * torch.eye(dU, dtype=f64).expand(M, T, dU, dU), atol=1e-3, rtol=0
+    )
+
+
+def test_with_fewer_samples_than_state_dimensions_only_the_jacobian_recovers_the_policy():
+    """Fine-tuning's first linearisation sees 5 samples per step in an 18-dimensional state.
+    Where the policy's slope changes from step to step (a network along a trajectory), the
+    prior pooled over steps cannot supply it and regression has too few samples to find it;
+    the network's own derivative gives it exactly. Off the line, cov holds the curvature."""
+    g = torch.Generator().manual_seed(0)
+    M, N, T_, dX_ = 2, 5, 4, 18
+    X = torch.randn(M, N, T_, dX_, dtype=f64, generator=g)
+    K_true = torch.randn(T_, dU, dX_, dtype=f64, generator=g)  # one slope per step
+    k_true = torch.randn(dU, dtype=f64, generator=g)
+    mean = torch.einsum("tux,mntx->mntu", K_true, X) + k_true
+    prior = PolicyPriorGMM(generator=g)
+    prior.update(X, mean)
+    regressed = fit_policy_linearization(X, mean, None, prior)
+    exact = policy_linearization_from_jacobian(X, mean, K_true.expand(M, N, T_, dU, dX_))
+    torch.testing.assert_close(exact.K, K_true.expand(M, T_, dU, dX_))
+    torch.testing.assert_close(exact.k, k_true.expand(M, T_, dU))
+    assert exact.cov.abs().max() < 1e-5  # a linear policy: the line misses nothing
+    assert (regressed.K - K_true).abs().max() > 0.5  # 5 points cannot pin 18 slopes
+
+    # a curved policy u = tanh(K x): K is the mean slope, the spread it misses goes to cov
+    curved = torch.tanh(X @ K_true[0].T)
+    slope = (1 - curved.pow(2)).unsqueeze(-1) * K_true[0]  # [M, N, T, dU, dX]
+    lin = policy_linearization_from_jacobian(X, curved, slope)
+    torch.testing.assert_close(lin.K, slope.mean(dim=1))
+    torch.testing.assert_close(lin.mean_actions(X).mean(dim=1), curved.mean(dim=1))
+    missed = curved - lin.mean_actions(X)
+    torch.testing.assert_close(
+        torch.diagonal(lin.cov, dim1=-2, dim2=-1), missed.pow(2).mean(dim=1) + 1e-6, rtol=1e-6, atol=1e-9
     )
 
 

@@ -13,6 +13,7 @@ from modnet.gps.dynamics import (
     estimate_initial_state,
     fit_dynamics,
     fit_policy_linearization,
+    policy_linearization_from_jacobian,
 )
 from modnet.gps.errors import NumericalError, check_finite
 from modnet.gps.lqr import (
@@ -55,6 +56,7 @@ __all__ = [
     "expected_cost",
     "fit_dynamics",
     "fit_policy_linearization",
+    "policy_linearization_from_jacobian",
     "gaussian_cost_terms",
     "kl_divergence",
     "laplace_cost",

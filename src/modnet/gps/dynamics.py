@@ -5,7 +5,8 @@ the N samples, optionally under a normal-inverse-Wishart prior ``(mu0, Phi, m, n
 time steps and conditions are fitted in one batched call. The prior comes from a Gaussian
 mixture fitted by EM on the points of the last few trajectories (:class:`DynamicsPriorGMM`).
 The same machinery fits the linearisation ``u ~ N(K_t x_t + k_t, S_t)`` of a neural-network
-policy (:func:`fit_policy_linearization`, prior :class:`PolicyPriorGMM`).
+policy (:func:`fit_policy_linearization`, prior :class:`PolicyPriorGMM`); a policy whose
+Jacobian is known can be linearised from it instead (:func:`policy_linearization_from_jacobian`).
 
 Examples:
     >>> import torch
@@ -43,6 +44,7 @@ __all__ = [
     "estimate_initial_state",
     "fit_dynamics",
     "fit_policy_linearization",
+    "policy_linearization_from_jacobian",
 ]
 
 _f64 = torch.float64
@@ -264,6 +266,51 @@ def fit_policy_linearization(
     if policy_cov is not None:
         S = S + policy_cov.to(_f64).mean(dim=1)
     S = S + ridge * _eye_like(S, dU)
+    for name, value in (("K", K), ("k", k), ("S", S)):
+        check_finite(f"policy linearisation {name}", value, world=world, iteration=iteration)
+    return LinearGaussianGains.from_covariance(K, k, S)
+
+
+def policy_linearization_from_jacobian(
+    X: torch.Tensor,
+    policy_mean: torch.Tensor,
+    jacobian: torch.Tensor,
+    policy_cov: torch.Tensor | None = None,
+    *,
+    ridge: float = 1e-6,
+    world: str | None = None,
+    iteration: int | None = None,
+) -> LinearGaussianGains:
+    """Linearise a policy from its Jacobian at the samples, instead of by regression.
+
+    ``X [M, N, T, dX]`` states, ``policy_mean [M, N, T, dU]`` the policy's mean actions there,
+    ``jacobian [M, N, T, dU, dX]`` their derivative with respect to the state. ``K_t`` is the
+    Jacobian averaged over the N samples of step t, and ``k_t`` puts the line through the mean
+    sample: ``k_t = mean(pi(x)) - K_t mean(x)``. The covariance is the policy's own
+    (``policy_cov [M, N, T, dU, dU]``, averaged) plus the spread of what this line misses at
+    the samples (the policy's curvature across them). :func:`fit_policy_linearization` must
+    infer ``K_t`` from N noisy samples in dX dimensions and leans on its prior for it; here
+    it is the network's own slope, so the controllers start from what the network does.
+    Returns gains with ``K [M, T, dU, dX]``.
+
+    Examples:
+        >>> X = torch.randn(2, 4, 3, 5, dtype=torch.float64)
+        >>> K = torch.randn(2, 1, 3, 2, 5, dtype=torch.float64)  # a linear policy, per (m, t)
+        >>> mean = (K @ X.unsqueeze(-1)).squeeze(-1) + 1.0
+        >>> gains = policy_linearization_from_jacobian(X, mean, K.expand(2, 4, 3, 2, 5))
+        >>> torch.allclose(gains.K, K[:, 0]), torch.allclose(gains.k, torch.ones_like(gains.k))
+        (True, True)
+    """
+    X, policy_mean, jacobian = X.to(_f64), policy_mean.to(_f64), jacobian.to(_f64)
+    dU = policy_mean.shape[-1]
+    K = jacobian.mean(dim=1)  # [M, T, dU, dX]
+    x_bar, u_bar = X.mean(dim=1), policy_mean.mean(dim=1)
+    k = u_bar - (K @ x_bar.unsqueeze(-1)).squeeze(-1)
+    missed = policy_mean - (K.unsqueeze(1) @ X.unsqueeze(-1)).squeeze(-1) - k.unsqueeze(1)  # [M, N, T, dU]
+    S = (missed.unsqueeze(-1) * missed.unsqueeze(-2)).mean(dim=1)
+    if policy_cov is not None:
+        S = S + policy_cov.to(_f64).mean(dim=1)
+    S = symmetrize(S) + ridge * _eye_like(S, dU)
     for name, value in (("K", K), ("k", k), ("S", S)):
         check_finite(f"policy linearisation {name}", value, world=world, iteration=iteration)
     return LinearGaussianGains.from_covariance(K, k, S)

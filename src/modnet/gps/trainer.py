@@ -48,6 +48,7 @@ from modnet.gps.dynamics import (
     PolicyPriorGMM,
     fit_dynamics,
     fit_policy_linearization,
+    policy_linearization_from_jacobian,
 )
 from modnet.gps.errors import NumericalError, check_finite
 from modnet.gps.loss import PolicyRegressionLoss
@@ -68,6 +69,9 @@ PHASES = ("sampling", "cost", "dynamics", "lqr", "policy", "s_step")
 #: enough for the convolutions' activations to stay in cache, which makes a pass 2 to 3 times
 #: faster per image than at 512 rows, with the same outputs (``benchmarks/policy_passes.py``)
 PIXEL_ROWS_PER_PASS = 32
+
+
+POLICY_LINEARIZATIONS = ("regression", "jacobian")
 
 
 @dataclass
@@ -132,6 +136,12 @@ class GPSConfig:
     #: it acts alike. Off by default; on reaching it brings the networks closer to the blocks
     #: (RESULTS, "regressing onto the torques the arms apply")
     clip_targets: bool = False
+    #: how the composed policy is linearised around the samples, for the C-step's trust region
+    #: and (fine-tuning) the first controllers: "regression" fits ``u ~ K x + k`` to its mean
+    #: actions at the N samples of each step under a GMM prior (the GPS code's); "jacobian"
+    #: takes ``K`` from the network's own derivative there (autograd; policies that read the
+    #: state only, not images). Off by default (RESULTS, "linearising the policy by its Jacobian")
+    policy_linearization: Literal["regression", "jacobian"] = "regression"
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -148,6 +158,11 @@ class GPSConfig:
             )
         if self.horizon is not None and self.horizon < 1:
             raise ValueError(f"gps.horizon must be at least 1 (or null for the task's), got {self.horizon}")
+        if self.policy_linearization not in POLICY_LINEARIZATIONS:
+            raise ValueError(
+                f"gps.policy_linearization must be one of {', '.join(POLICY_LINEARIZATIONS)}, "
+                f"got {self.policy_linearization!r}"
+            )
         if self.conditions not in CONDITION_SETS:
             raise ValueError(
                 f"gps.conditions must be one of {', '.join(CONDITION_SETS)}, got {self.conditions!r}"
@@ -225,6 +240,11 @@ class GPSTrainer:
             raise ValueError(f"unknown GPS algorithm {config.algo!r}; valid: mdgps, badmm")
         if not worlds:
             raise ValueError("GPS needs at least one training world")
+        if pixels and config.policy_linearization == "jacobian":
+            raise ValueError(
+                "gps.policy_linearization=jacobian needs a policy that reads the state; this one "
+                "reads images: use regression"
+            )
         for world in worlds:
             bank.parts(bank.world(*world))  # fails early, naming what is missing
         torch.manual_seed(config.seed)
@@ -403,7 +423,7 @@ class GPSTrainer:
     @torch.no_grad()
     def _policy_outputs(self, states: Sequence[WorldState]) -> None:
         """The composed policies' mean actions at every world's samples, and their linearisation
-        (which also feeds the policy prior).
+        (``gps.policy_linearization``; the samples also feed the policy prior).
 
         In an iteration that samples the policy (the first of fine-tuning, ``init_from_policy``;
         every later one with ``sample_on_policy``) the means are clipped to the torque limits
@@ -412,32 +432,56 @@ class GPSTrainer:
         world.  Otherwise the network imitates the controllers, as in training.
         """
         as_applied = self._samples_policy()
+        by_jacobian = self.config.policy_linearization == "jacobian"
         with self._timed("policy"):
             self.bank.eval()
             out = self._forward_samples(states)
+            jacobians = self._policy_jacobians(states) if by_jacobian else [None] * len(states)
             self.bank.train()
-        for state, result in zip(states, out, strict=True):
+        for state, result, jacobian in zip(states, out, jacobians, strict=True):
             mean = result["loc"].to(torch.float64)
             check_finite("policy action", mean, world=state.name, iteration=self.iteration)
             if as_applied:
+                if jacobian is not None:  # a clipped torque does not move with the state
+                    jacobian = jacobian * (mean.abs() <= TORQUE_LIMIT).unsqueeze(-1)
                 mean = mean.clamp(-TORQUE_LIMIT, TORQUE_LIMIT)
             state.policy_mean = mean
             self._record_action_gap(state)
+            covariance = torch.diag_embed(result["scale"].to(torch.float64).pow(2))
+            where = dict(world=state.name, iteration=self.iteration)
             with self._timed("dynamics"):
-                state.policy_prior.update(
-                    state.samples.X.transpose(0, 1),
-                    mean.transpose(0, 1),
-                    world=state.name,
-                    iteration=self.iteration,
-                )
-                state.policy = fit_policy_linearization(
-                    state.samples.X,
-                    mean,
-                    torch.diag_embed(result["scale"].to(torch.float64).pow(2)),
-                    state.policy_prior,
-                    world=state.name,
-                    iteration=self.iteration,
-                )
+                state.policy_prior.update(state.samples.X.transpose(0, 1), mean.transpose(0, 1), **where)
+                if jacobian is None:
+                    state.policy = fit_policy_linearization(
+                        state.samples.X, mean, covariance, state.policy_prior, **where
+                    )
+                else:
+                    state.policy = policy_linearization_from_jacobian(
+                        state.samples.X, mean, jacobian, covariance, **where
+                    )
+
+    def _policy_jacobians(self, states: Sequence[WorldState]) -> list[torch.Tensor]:
+        """``d loc / d x [M, N, T, dU, dX]`` of every world's composed policy at its samples, by
+        autograd through the bank (a state policy reads ``x = [robot_state, task_state]``
+        itself), one backward pass per action dimension."""
+        inputs = {}
+        for state in states:
+            obs = state.samples.obs.select(*STATE_KEYS).clone()
+            for key in STATE_KEYS:
+                obs.set(key, obs.get(key).detach().requires_grad_(True))
+            inputs[state.name] = obs
+        jacobians = []
+        with torch.enable_grad():
+            out = self.bank.forward_worlds(inputs)
+            for state in states:
+                loc = out[self.bank.world(state.name)]["loc"]
+                x = [inputs[state.name].get(key) for key in STATE_KEYS]
+                rows = [
+                    torch.cat(torch.autograd.grad(loc[..., j].sum(), x, retain_graph=True), dim=-1)
+                    for j in range(loc.shape[-1])
+                ]
+                jacobians.append(torch.stack(rows, dim=-2).to(torch.float64))
+        return jacobians
 
     @staticmethod
     def _record_action_gap(state: WorldState) -> None:
