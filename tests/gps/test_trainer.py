@@ -351,7 +351,9 @@ def test_policy_jacobians_are_the_networks_derivatives():
     (state,) = trainer.states.values()
     state.samples = state.sampler.sample(trainer._composed(state))
     trainer.bank.eval()
-    (jacobian,) = trainer._policy_jacobians([state])
+    (out,), (jacobian,) = trainer._outputs_and_jacobians([state])
+    (plain,) = trainer._forward_samples([state])
+    torch.testing.assert_close(out["loc"], plain["loc"])  # the outputs of the same pass
     X = state.samples.X[:1, :2, :3]  # a few samples suffice
     assert jacobian.shape == (*state.samples.X.shape[:3], 3, X.shape[-1])
     bank = copy.deepcopy(trainer.bank).double()

@@ -432,11 +432,12 @@ class GPSTrainer:
         world.  Otherwise the network imitates the controllers, as in training.
         """
         as_applied = self._samples_policy()
-        by_jacobian = self.config.policy_linearization == "jacobian"
         with self._timed("policy"):
             self.bank.eval()
-            out = self._forward_samples(states)
-            jacobians = self._policy_jacobians(states) if by_jacobian else [None] * len(states)
+            if self.config.policy_linearization == "jacobian":
+                out, jacobians = self._outputs_and_jacobians(states)
+            else:
+                out, jacobians = self._forward_samples(states), [None] * len(states)
             self.bank.train()
         for state, result, jacobian in zip(states, out, jacobians, strict=True):
             mean = result["loc"].to(torch.float64)
@@ -460,28 +461,32 @@ class GPSTrainer:
                         state.samples.X, mean, jacobian, covariance, **where
                     )
 
-    def _policy_jacobians(self, states: Sequence[WorldState]) -> list[torch.Tensor]:
-        """``d loc / d x [M, N, T, dU, dX]`` of every world's composed policy at its samples, by
-        autograd through the bank (a state policy reads ``x = [robot_state, task_state]``
-        itself), one backward pass per action dimension."""
+    def _outputs_and_jacobians(
+        self, states: Sequence[WorldState]
+    ) -> tuple[list[TensorDictBase], list[torch.Tensor]]:
+        """The bank's outputs at every world's samples (as :meth:`_forward_samples`) and
+        ``d loc / d x [M, N, T, dU, dX]``, by autograd through the same pass (a state policy
+        reads ``x = [robot_state, task_state]`` itself), one backward pass per action dimension."""
         inputs = {}
         for state in states:
             obs = state.samples.obs.select(*STATE_KEYS).clone()
             for key in STATE_KEYS:
                 obs.set(key, obs.get(key).detach().requires_grad_(True))
             inputs[state.name] = obs
-        jacobians = []
+        outputs, jacobians = [], []
         with torch.enable_grad():
             out = self.bank.forward_worlds(inputs)
             for state in states:
-                loc = out[self.bank.world(state.name)]["loc"]
+                result = out[self.bank.world(state.name)]
+                loc = result["loc"]
                 x = [inputs[state.name].get(key) for key in STATE_KEYS]
                 rows = [
                     torch.cat(torch.autograd.grad(loc[..., j].sum(), x, retain_graph=True), dim=-1)
                     for j in range(loc.shape[-1])
                 ]
+                outputs.append(result.detach())
                 jacobians.append(torch.stack(rows, dim=-2).to(torch.float64))
-        return jacobians
+        return outputs, jacobians
 
     @staticmethod
     def _record_action_gap(state: WorldState) -> None:
