@@ -393,6 +393,23 @@ def test_a_jacobian_linearisation_predicts_the_network_off_its_samples():
     assert errors["jacobian"] < 0.5 * errors["regression"], errors
 
 
+def test_a_jacobian_trainer_fits_no_policy_prior_and_resumes_exactly():
+    """The Jacobian needs no GMM over the policy's samples, so none is fitted; the checkpoint,
+    with that prior empty, resumes to the same next iteration."""
+    options = dict(worlds=GRID[:1], policy_linearization="jacobian")
+    original = trainer_for(**options)
+    original.step()
+    (state,) = original.states.values()
+    assert state.policy_prior.X is None and state.policy_prior.gmm.mu is None
+    buffer = io.BytesIO()
+    torch.save(original.state_dict(), buffer)
+    buffer.seek(0)
+    expected = original.step()
+    resumed = trainer_for(**options)
+    resumed.load_state_dict(torch.load(buffer, weights_only=True))
+    assert resumed.step() == expected
+
+
 def test_a_jacobian_linearisation_needs_a_policy_that_reads_the_state():
     bank = ModuleBank.build(["three_link"], ["reach_red"], pixels=True, seed=0)
     with pytest.raises(ValueError, match="policy_linearization=jacobian needs a policy that reads the state"):

@@ -423,7 +423,8 @@ class GPSTrainer:
     @torch.no_grad()
     def _policy_outputs(self, states: Sequence[WorldState]) -> None:
         """The composed policies' mean actions at every world's samples, and their linearisation
-        (``gps.policy_linearization``; the samples also feed the policy prior).
+        (``gps.policy_linearization``; by regression the samples also feed the policy prior,
+        which the Jacobian does not need).
 
         In an iteration that samples the policy (the first of fine-tuning, ``init_from_policy``;
         every later one with ``sample_on_policy``) the means are clipped to the torque limits
@@ -451,8 +452,8 @@ class GPSTrainer:
             covariance = torch.diag_embed(result["scale"].to(torch.float64).pow(2))
             where = dict(world=state.name, iteration=self.iteration)
             with self._timed("dynamics"):
-                state.policy_prior.update(state.samples.X.transpose(0, 1), mean.transpose(0, 1), **where)
-                if jacobian is None:
+                if jacobian is None:  # the regression's prior: refitted on the latest samples
+                    state.policy_prior.update(state.samples.X.transpose(0, 1), mean.transpose(0, 1), **where)
                     state.policy = fit_policy_linearization(
                         state.samples.X, mean, covariance, state.policy_prior, **where
                     )
