@@ -6,6 +6,7 @@
     python benchmarks/gps_single_world.py --task push --conditions 4 --trajectory-only  # no policy pull
     python benchmarks/gps_single_world.py --task push --max-policy-weight 1e-3 --evaluate-on train
     python benchmarks/gps_single_world.py --task push --width 256 --sgd-steps 3000  # a larger network
+    python benchmarks/gps_single_world.py --task push --algo mdgps --sample-on-policy  # on-policy MDGPS
 
 The distance is the task's (end-effector or object to goal) averaged over the last 5 steps
 of a deterministic rollout of the composed policy (not the local controllers) from each
@@ -120,6 +121,13 @@ def main() -> None:
         default=None,
         help=f"SGD steps of the S-step, every iteration including the first (default {GPSConfig.sgd_steps})",
     )
+    parser.add_argument(
+        "--sample-on-policy",
+        action="store_true",
+        help="from the second iteration on, sample the network instead of the controllers (the GPS "
+        "code's sample_on_policy, with --algo mdgps its on-policy variant): the S-step then learns "
+        "at the states the network itself reaches",
+    )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--trace", action="store_true", help="where the object goes, per condition")
     args = parser.parse_args()
@@ -157,6 +165,7 @@ def main() -> None:
             dynamics_ridge=args.dynamics_ridge,
             noise_smoothing=args.noise_smoothing,
             dynamics_prior_per_condition=args.dynamics_prior_per_condition,
+            sample_on_policy=args.sample_on_policy,
             badmm=BADMMConfig(**pull),
             **sgd,
         )
@@ -187,6 +196,7 @@ def main() -> None:
                 "noise_smoothing": args.noise_smoothing,
                 "dynamics_prior_per_condition": args.dynamics_prior_per_condition,
                 "trajectory_only": args.trajectory_only,
+                "sample_on_policy": args.sample_on_policy,
                 "max_policy_weight": config.badmm.max_policy_weight,
                 "evaluated_on": args.evaluate_on,
                 "width": bank.config.task_hidden[0],
