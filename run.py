@@ -63,6 +63,7 @@ NEWER_OPTIONS = {
     "gps.clip_targets": False,
     "gps.sample_on_policy": False,
     "gps.policy_linearization": "regression",
+    "gps.scenes_per_world": False,
 }
 
 

@@ -37,6 +37,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from modnet.bank import ModuleBank
 from modnet.evaluate import bank_tasks, evaluating, evaluation_env, misfit, rollout
 from modnet.gps.sampling import WorldSampler
+from modnet.gps.trainer import GPSConfig
 from modnet.specs import TaskDefinition
 from modnet.universes import get_universe
 from modnet.worlds import get_world
@@ -68,7 +69,9 @@ def objects_seen(gps: dict, results: dict, robot: str) -> dict[str, list[float]]
         if other_robot != robot or get_world(robot, task).task.moved == "ee":
             continue
         conditions = {"conditions": gps["conditions"], "num_conditions": gps["num_conditions"]}
-        env = evaluation_env(robot, task, **conditions, seed=gps["condition_seed"])
+        per_world = gps.get("scenes_per_world", False)  # absent from runs older than the option
+        scenes = GPSConfig(condition_seed=gps["condition_seed"], scenes_per_world=per_world)
+        env = evaluation_env(robot, task, **conditions, seed=scenes.scene_seed(robot, task))
         definition = env.world.task
         start = definition.part(env.reset()["task", "state"].double(), definition.moved).norm(dim=-1)
         seen[world] = [round(float(start.min()), 4), round(float(start.max()), 4)]

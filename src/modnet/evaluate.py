@@ -183,7 +183,7 @@ def training_env(
         task,
         conditions=config.conditions,
         num_conditions=config.num_conditions,
-        seed=config.condition_seed,
+        seed=config.scene_seed(robot, task),
         horizon=config.horizon if horizon is None else horizon,
         pixels=pixels,
     )

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import contextlib
 import time
+import zlib
 from collections import defaultdict
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field, fields
@@ -142,6 +143,11 @@ class GPSConfig:
     #: takes ``K`` from the network's own derivative there (autograd; policies that read the
     #: state only, not images). Off by default (RESULTS, "linearising the policy by its Jacobian")
     policy_linearization: Literal["regression", "jacobian"] = "regression"
+    #: each training world draws its own scenes (seeded by ``condition_seed`` and the world's
+    #: name) instead of every world of a task sharing the task's: at the same samples a task
+    #: module then trains on one set of layouts per robot, and a robot module on one per task.
+    #: Evaluation's test and random sets are unchanged. Off by default (RESULTS, "scenes per world")
+    scenes_per_world: bool = False
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -172,6 +178,21 @@ class GPSConfig:
                 f"gps.num_conditions must be at least {NUM_FIXED_CONDITIONS} (or null), "
                 f"got {self.num_conditions}"
             )
+
+    def scene_seed(self, robot: str, task: str) -> int:
+        """The seed of ``robot``/``task``'s training scenes: ``condition_seed``, or with
+        ``scenes_per_world`` one that also depends on the world's name.
+
+        Examples:
+            >>> GPSConfig().scene_seed("three_link", "push") == GPSConfig().scene_seed("four_link", "push")
+            True
+            >>> config = GPSConfig(scenes_per_world=True)
+            >>> config.scene_seed("three_link", "push") == config.scene_seed("four_link", "push")
+            False
+        """
+        if not self.scenes_per_world:
+            return self.condition_seed
+        return self.condition_seed << 32 | zlib.crc32(f"{robot}/{task}".encode())
 
     def lqr(self) -> LQRConfig:
         return LQRConfig(
@@ -276,7 +297,7 @@ class GPSTrainer:
             horizon=c.horizon,
             pixels=self.pixels,
             shaping=c.shaping,
-            seed=c.condition_seed,
+            seed=c.scene_seed(robot, task),
             num_conditions=c.num_conditions,
         )
         M, T = sampler.num_conditions, sampler.horizon
