@@ -143,6 +143,17 @@ def test_gps_single_world_caps_the_policy_weight_and_scores_the_training_conditi
     assert "min_policy_weight" in single_world_refusal("--max-policy-weight", "1e-8")  # below the floor
 
 
+def test_gps_single_world_samples_the_network_from_the_second_iteration_with_sample_on_policy():
+    """``--sample-on-policy``: the first iteration samples the controllers either way, the second
+    the network (so the two runs part there), and the JSON says which was run."""
+    options = "--algo mdgps --conditions 4 --samples 2 --iterations 2 --sgd-steps 20".split()
+    off = last_json("gps_single_world.py", *options, timeout=600)
+    on = last_json("gps_single_world.py", *options, "--sample-on-policy", timeout=600)
+    assert off["sample_on_policy"] is False and on["sample_on_policy"] is True
+    assert on["controllers_distance"][0] == off["controllers_distance"][0]
+    assert on["controllers_distance"][1] != off["controllers_distance"][1]
+
+
 def test_gps_single_world_sizes_the_network_and_scores_random_conditions():
     """``--width`` sets every hidden layer of both modules (depths and interface kept) and
     ``--sgd-steps`` the S-step's length; ``--evaluate-on random`` scores further random

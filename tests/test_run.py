@@ -404,17 +404,19 @@ def test_options_at_their_do_nothing_defaults_stay_out_of_the_checkpoint_identit
     assert not any(k.startswith("pretrain.") or k == "bank.softmax_temperature" for k in plain)
     assert "gps.dynamics_ridge" not in plain and "gps.noise_smoothing" not in plain
     assert "gps.train_convolutions" not in plain and "gps.clip_targets" not in plain
-    assert "gps.policy_linearization" not in plain
+    assert "gps.policy_linearization" not in plain and "gps.scenes_per_world" not in plain
     options = [
         "gps.dynamics_ridge=1e-3",
         "gps.noise_smoothing=2",
         "gps.train_convolutions=false",
         "gps.clip_targets=true",
+        "gps.scenes_per_world=true",
     ]
     ridged = composed_run("universe=color_reach", *options)
     ridged = run_py.run_identity(ridged, universe, split)
     assert ridged["gps.dynamics_ridge"] == 1e-3 and ridged["gps.noise_smoothing"] == 2.0
     assert ridged["gps.train_convolutions"] is False and ridged["gps.clip_targets"] is True
+    assert ridged["gps.scenes_per_world"] is True
     pretrained = run_py.run_identity(base, universe, split)
     assert pretrained["pretrain.images"] == 4000 and pretrained["bank.softmax_temperature"] == 0.05
     assert pretrained["pretrain.seed"] == 3  # follows the run seed

@@ -11,6 +11,7 @@ from tensordict import TensorDict
 
 import modnet.gps.trainer as trainer_module
 from modnet.bank import ModuleBank
+from modnet.evaluate import training_env
 from modnet.gps.errors import NumericalError
 from modnet.gps.trainer import GPSConfig, GPSTrainer
 from modnet.specs import TORQUE_LIMIT
@@ -127,6 +128,27 @@ def test_convolutions_kept_as_they_start_with_train_convolutions_false():
     assert {k for k in changed if k.startswith("factor_modules.task.reach_red.") and ".pixels." not in k}
     assert {k for k in changed if k.startswith("factor_modules.robot.three_link.")}
     assert all(p.requires_grad != (".pixels." in n) for n, p in bank.named_parameters())
+
+
+def test_scenes_per_world_gives_each_arm_its_own_scenes_where_the_trainer_and_scoring_agree():
+    """``scenes_per_world``: two arms on one task train on different block layouts (the same
+    ones without it), and ``training_env`` serves each world the very scenes its trainer samples."""
+    worlds = [("three_link", "reach_black"), ("four_link", "reach_black")]
+
+    def black_blocks(env) -> torch.Tensor:  # where each copy's black block starts
+        return env.world.task.part(env.reset()["task", "state"], "black")
+
+    for per_world in (False, True):
+        trainer = trainer_for(worlds=worlds, scenes_per_world=per_world)
+        layouts = []
+        for robot, task in worlds:
+            scored = black_blocks(training_env(robot, task, trainer.config))
+            sampler = trainer.states[f"{robot}/{task}"].sampler
+            trained = black_blocks(sampler.env)[: sampler.num_conditions]
+            torch.testing.assert_close(trained, scored, rtol=0, atol=0)
+            layouts.append(scored)
+        gap = (layouts[0] - layouts[1]).norm(dim=-1)
+        assert (gap.min() > 0.01) if per_world else (gap.max() == 0), gap
 
 
 def test_clip_targets_regresses_onto_the_torques_the_arms_apply():
