@@ -69,8 +69,8 @@ def first_iteration(
 ) -> dict:
     robot, task = results["holdout"].split("/")
     wrong_task = results["methods"]["wrong_task"]["task"] if "wrong_task" in results["methods"] else None
-    config = dataclasses.replace(run.finetune_gps_config(), policy_linearization=linearization)
-    config = start_config(dataclasses.replace(config, kl_step=kl_step), start)
+    options = dict(kl_step=kl_step, policy_linearization=linearization)
+    config = start_config(dataclasses.replace(run.finetune_gps_config(), **options), start)
     bank = _start_bank(run_dir / "bank", start, robot, task, wrong_task, config.seed)
     trainer = GPSTrainer(bank, [(robot, task)], config)
     scenes = training_env(robot, task, config, horizon=results["horizon"])

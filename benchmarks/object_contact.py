@@ -29,13 +29,13 @@ import json
 from pathlib import Path
 
 import torch
-import yaml
 from _run_dir import FINISHED, finished_run
 from tensordict import TensorDictBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from modnet.bank import ModuleBank
-from modnet.evaluate import bank_tasks, evaluating, evaluation_env, misfit, rollout
+from modnet.config import saved_run
+from modnet.evaluate import bank_tasks, evaluating, evaluation_env, misfit, rollout, training_env
 from modnet.gps.sampling import WorldSampler
 from modnet.gps.trainer import GPSConfig
 from modnet.specs import TaskDefinition
@@ -60,20 +60,19 @@ def contact(task: TaskDefinition, td: TensorDictBase) -> dict[str, torch.Tensor]
     }
 
 
-def objects_seen(gps: dict, results: dict, robot: str) -> dict[str, list[float]]:
+def objects_seen(config: GPSConfig, results: dict, robot: str) -> dict[str, list[float]]:
     """How far from the base the objects of ``robot``'s training worlds start, in the training
-    conditions of the run's ``gps`` options: ``{world: [min, max]}``."""
+    conditions of the run's GPS options ``config``: ``{world: [min, max]}``."""
     seen = {}
     for world in results["training_worlds"]:
         other_robot, task = world.split("/")
-        if other_robot != robot or get_world(robot, task).task.moved == "ee":
+        if other_robot != robot:
             continue
-        conditions = {"conditions": gps["conditions"], "num_conditions": gps["num_conditions"]}
-        per_world = gps.get("scenes_per_world", False)  # absent from runs older than the option
-        scenes = GPSConfig(condition_seed=gps["condition_seed"], scenes_per_world=per_world)
-        env = evaluation_env(robot, task, **conditions, seed=scenes.scene_seed(robot, task))
-        definition = env.world.task
-        start = definition.part(env.reset()["task", "state"].double(), definition.moved).norm(dim=-1)
+        definition = get_world(robot, task).task
+        if definition.moved == "ee":
+            continue
+        state = training_env(robot, task, config).reset()["task", "state"].double()
+        start = definition.part(state, definition.moved).norm(dim=-1)
         seen[world] = [round(float(start.min()), 4), round(float(start.max()), 4)]
     return seen
 
@@ -102,8 +101,8 @@ def main() -> None:
     if definition.moved == "ee":
         parser.error(f"{task} moves nothing but the end effector: no object to touch")
 
-    run_config = yaml.safe_load((args.run_dir / ".hydra" / "config.yaml").read_text())
-    random_network = bank.fresh_copy(seed=run_config["eval"]["baseline_seed"])  # the zero-shot table's
+    run = saved_run(args.run_dir)
+    random_network = bank.fresh_copy(seed=run.eval.baseline_seed)  # the zero-shot table's
     policies = {"composed": (bank, task), "random": (random_network, task)}
     for other in bank_tasks(bank):
         if other != task and misfit(bank, robot, other, env) is None:  # as in the zero-shot table
@@ -120,7 +119,7 @@ def main() -> None:
             f"  end effector ends {row['end_effector_from_base']} from the base"
         )
     print(f"the {definition.moved} starts {deterministic['composed']['object_from_base']} from the base")
-    seen = objects_seen(run_config["gps"], results, robot)
+    seen = objects_seen(run.gps_config(), results, robot)
     for name, (lo, hi) in seen.items():
         print(f"  {name} (training): objects start {lo} to {hi} from the base")
 

@@ -13,7 +13,7 @@ from tensordict import TensorDict
 
 from modnet.bank import ModuleBank
 from modnet.evaluate import evaluation_env, rollout
-from modnet.gps.trainer import PHASES, PIXEL_ROWS_PER_PASS
+from modnet.gps.trainer import PHASES, PIXEL_ROWS_PER_PASS, GPSConfig
 from modnet.worlds import get_world
 
 
@@ -211,7 +211,7 @@ def test_object_contact_measures_approach_displacement_and_progress_towards_the_
 def test_object_contact_reports_where_the_training_worlds_objects_start():
     """From the run's own training conditions: three_link/push's blocks, as its condition set has them."""
     objects_seen = load_benchmark("object_contact").objects_seen
-    gps = {"conditions": "train", "num_conditions": 8, "condition_seed": 3}  # as .hydra/config.yaml has it
+    gps = GPSConfig(num_conditions=8, condition_seed=3)
     results = {"training_worlds": ["three_link/push", "three_link/reach", "four_link/push"]}
     seen = objects_seen(gps, results, "three_link")
     assert list(seen) == ["three_link/push"]  # not reach (it moves nothing), not another robot
