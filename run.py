@@ -64,6 +64,9 @@ NEWER_OPTIONS = {
     "gps.sample_on_policy": False,
     "gps.policy_linearization": "regression",
     "gps.scenes_per_world": False,
+    "gps.c_step": "lqr",
+    "gps.pi2_kl": GPSConfig.pi2_kl,
+    "gps.pi2_covariance_damping": GPSConfig.pi2_covariance_damping,
 }
 
 

@@ -128,6 +128,16 @@ def main() -> None:
         "code's sample_on_policy, with --algo mdgps its on-policy variant): the S-step then learns "
         "at the states the network itself reaches",
     )
+    parser.add_argument(
+        "--c-step",
+        default=GPSConfig.c_step,
+        choices=["lqr", "pi2"],
+        help="the C-step: the KL-constrained LQR on fitted dynamics, or PI2's reweighting of the "
+        "samples by their cost to go (model-free; with --algo mdgps)",
+    )
+    parser.add_argument(
+        "--pi2-kl", type=float, default=GPSConfig.pi2_kl, help="PI2: the KL of each step's sample weights"
+    )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--trace", action="store_true", help="where the object goes, per condition")
     args = parser.parse_args()
@@ -166,6 +176,8 @@ def main() -> None:
             noise_smoothing=args.noise_smoothing,
             dynamics_prior_per_condition=args.dynamics_prior_per_condition,
             sample_on_policy=args.sample_on_policy,
+            c_step=args.c_step,
+            pi2_kl=args.pi2_kl,
             badmm=BADMMConfig(**pull),
             **sgd,
         )
@@ -197,6 +209,8 @@ def main() -> None:
                 "dynamics_prior_per_condition": args.dynamics_prior_per_condition,
                 "trajectory_only": args.trajectory_only,
                 "sample_on_policy": args.sample_on_policy,
+                "c_step": args.c_step,
+                **({"pi2_kl": args.pi2_kl} if args.c_step == "pi2" else {}),
                 "max_policy_weight": config.badmm.max_policy_weight,
                 "evaluated_on": args.evaluate_on,
                 "width": bank.config.task_hidden[0],

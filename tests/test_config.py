@@ -78,6 +78,17 @@ def test_overrides_reach_the_library_configs():
     by_jacobian = dataclasses.replace(exact.gps_config(), policy_linearization="jacobian")
     assert exact.finetune_gps_config() == by_jacobian
     assert exact.gps_config().policy_linearization == "regression"  # training regresses, as the GPS code
+    pi2 = composed("universe=tiny", "algo=badmm", "eval.finetune_algo=mdgps", "eval.finetune_c_step=pi2")
+    assert pi2.finetune_gps_config() == dataclasses.replace(pi2.gps_config(), algo="mdgps", c_step="pi2")
+    assert (pi2.gps_config().algo, pi2.gps_config().c_step) == ("badmm", "lqr")  # training's own
+
+
+def test_a_pi2_c_step_under_badmm_is_refused_before_any_work_naming_the_fix():
+    for overrides in (["gps.c_step=pi2", "algo=badmm"], ["algo=badmm", "eval.finetune_c_step=pi2"]):
+        run = composed("universe=tiny", *overrides)
+        with pytest.raises(ConfigError, match="use algo=mdgps"):
+            validate(run)
+    validate(composed("universe=tiny", "algo=mdgps", "gps.c_step=pi2"))
 
 
 def test_literal_choices_and_values_no_type_rules_out_fail_with_the_key():

@@ -188,6 +188,10 @@ class EvalConfig:
             policy ("regression" or "jacobian", :class:`~modnet.gps.GPSConfig`'s
             ``policy_linearization``); None: ``gps.policy_linearization``. Not part of a
             checkpoint's identity.
+        finetune_algo: the GPS algorithm of every fine-tuning start ("mdgps" or "badmm");
+            None: the training's. Not part of a checkpoint's identity.
+        finetune_c_step: the C-step of every fine-tuning start ("lqr", or "pi2" with MDGPS);
+            None: ``gps.c_step``. Not part of a checkpoint's identity.
     """
 
     conditions: str = "test"
@@ -206,6 +210,8 @@ class EvalConfig:
     finetune_sgd_steps: int | None = None
     finetune_dynamics_prior_per_condition: bool | None = None
     finetune_policy_linearization: str | None = None
+    finetune_algo: str | None = None
+    finetune_c_step: str | None = None
 
 
 #: the GPSConfig fields an ``eval.finetune_<field>`` sets for the fine-tuning starts alone
@@ -216,6 +222,8 @@ FINETUNE_GPS_OVERRIDES = (
     "sgd_steps",
     "dynamics_prior_per_condition",
     "policy_linearization",
+    "algo",
+    "c_step",
 )
 
 
@@ -268,13 +276,19 @@ class RunConfig:
 
     def gps_config(self, **changes: Any) -> GPSConfig:
         """The library's :class:`GPSConfig` of this run (``changes`` override fields)."""
-        return dataclasses.replace(build(GPSConfig, self.gps, "gps."), **changes)
+        config = build(GPSConfig, self.gps, "gps.")
+        try:
+            return dataclasses.replace(config, **changes)
+        except ValueError as err:  # a fine-tuning override the training's options do not allow
+            names = ", ".join(f"{name}={value}" for name, value in changes.items())
+            raise ConfigError(f"{err} (with {names})") from err
 
     def finetune_gps_config(self) -> GPSConfig:
         """The :class:`GPSConfig` of the fine-tuning starts: the training's, with
         ``eval.finetune_samples_per_condition``, ``eval.finetune_kl_step``,
-        ``eval.finetune_sgd_steps``, ``eval.finetune_dynamics_prior_per_condition`` and
-        ``eval.finetune_policy_linearization`` when set, and sampling the policy with
+        ``eval.finetune_sgd_steps``, ``eval.finetune_dynamics_prior_per_condition``,
+        ``eval.finetune_policy_linearization``, ``eval.finetune_algo`` and
+        ``eval.finetune_c_step`` when set, and sampling the policy with
         ``eval.finetune_sample_on_policy``.
 
         Examples:

@@ -486,3 +486,29 @@ def test_per_condition_priors_each_buffer_their_own_conditions_trajectories(monk
     shared.step()
     shared_prior = shared.states["three_link/reach_red"].dynamics_prior
     assert shared_prior.X.shape[0] == 12  # every condition's 3 samples in one buffer
+
+
+def test_a_pi2_c_step_lowers_the_cost_from_the_samples_alone(monkeypatch):
+    """``c_step="pi2"`` (MDGPS): the controllers move by reweighting their samples; the LQR on
+    the fitted dynamics is never called, and the sampled cost falls on a real MuJoCo world."""
+
+    def no_lqr(*args, **kwargs):
+        raise AssertionError("the PI2 C-step must not plan on the fitted dynamics")
+
+    monkeypatch.setattr(trainer_module, "c_step", no_lqr)
+    trainer = trainer_for([("three_link", "reach_red")], algo="mdgps", c_step="pi2", samples_per_condition=8)
+    history = [trainer.step()["three_link/reach_red"] for _ in range(6)]
+    assert history[-1]["sampled_cost"] < 0.8 * history[0]["sampled_cost"], history
+    assert history[-1]["distance"] < history[0]["distance"], history
+    assert all(0 < d["kl"] <= GPSConfig.pi2_kl + 1e-6 and d["step_mult"] == 1.0 for d in history)
+    (state,) = trainer.states.values()
+    assert state.sampled_costs.shape == (*state.samples.X.shape[:-1],)
+
+
+def test_pi2_is_an_mdgps_c_step():
+    with pytest.raises(ValueError, match="algo=mdgps"):
+        GPSConfig(c_step="pi2")
+    with pytest.raises(ValueError, match="lqr, pi2"):
+        GPSConfig(c_step="cem", algo="mdgps")
+    with pytest.raises(ValueError, match="must be positive"):
+        GPSConfig(c_step="pi2", algo="mdgps", pi2_kl=0.0)

@@ -8,7 +8,8 @@ One :meth:`GPSTrainer.step` is one GPS iteration:
 2. **cost**: quadratic expansion of each world's torch cost by autograd;
 3. **dynamics**: per-step linear-Gaussian fits with a GMM prior;
 4. **C-step**: KL-constrained LQR per world and condition, against the linearised policy
-   (MDGPS) or the previous controller plus BADMM's dual terms;
+   (MDGPS) or the previous controller plus BADMM's dual terms; or, with ``c_step="pi2"``
+   (MDGPS), PI2's model-free reweighting of the samples (:mod:`modnet.gps.pi2`);
 5. **S-step**: SGD on the sum over worlds of the precision-weighted regression of each
    world's composed policy onto its controllers (:class:`~modnet.gps.loss.PolicyRegressionLoss`),
    then the policy's diagonal covariance is fitted.
@@ -55,14 +56,15 @@ from modnet.gps.errors import NumericalError, check_finite
 from modnet.gps.loss import PolicyRegressionLoss
 from modnet.gps.lqr import LQRConfig, adapt_step_mult, kl_divergence, laplace_cost, lqr_forward
 from modnet.gps.lqr import solve_kl_constrained_lqr as c_step
+from modnet.gps.pi2 import pi2_update
 from modnet.gps.sampling import POLICY_KEYS, STATE_KEYS, Samples, WorldSampler, state_of
 from modnet.modules import PixelEncoder
 from modnet.specs import TORQUE_LIMIT
 from modnet.worlds import CONDITION_SETS, NUM_FIXED_CONDITIONS
 
 #: where an iteration's time goes (``GPSTrainer.timings``): sampling the worlds, expanding the
-#: cost, fitting dynamics and policy linearisations, the LQR, the policy's forward passes over
-#: the samples and the S-step's SGD
+#: cost, fitting dynamics and policy linearisations, the C-step ("lqr", or PI2 with
+#: ``c_step="pi2"``), the policy's forward passes over the samples and the S-step's SGD
 PHASES = ("sampling", "cost", "dynamics", "lqr", "policy", "s_step")
 
 
@@ -73,6 +75,7 @@ PIXEL_ROWS_PER_PASS = 32
 
 
 POLICY_LINEARIZATIONS = ("regression", "jacobian")
+C_STEPS = ("lqr", "pi2")
 
 
 @dataclass
@@ -148,6 +151,19 @@ class GPSConfig:
     #: module then trains on one set of layouts per robot, and a robot module on one per task.
     #: Evaluation's test and random sets are unchanged. Off by default (RESULTS, "scenes per world")
     scenes_per_world: bool = False
+    #: the C-step: "lqr", the KL-constrained LQR on the dynamics fitted to the samples (the
+    #: paper's), or "pi2", which reweights each condition's samples by their cost to go within
+    #: a KL bound of the distribution that drew them, and needs no model (the GPS code's
+    #: PIGPS; :mod:`modnet.gps.pi2`). PI2 is an MDGPS C-step (``algo="mdgps"``): it stays near
+    #: the controllers that sampled, or, with ``sample_on_policy``, near the policy itself.
+    #: Off by default (RESULTS, "a model-free C-step")
+    c_step: Literal["lqr", "pi2"] = "lqr"
+    #: PI2: the KL from uniform of each step's sample weights (the GPS code's ``kl_threshold``;
+    #: at most log N, all weight on the best sample)
+    pi2_kl: float = 1.0
+    #: PI2: the covariance is damped towards the old one by this power (the GPS code's
+    #: ``covariance_damping``; larger keeps exploring longer)
+    pi2_covariance_damping: float = 2.0
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -168,6 +184,18 @@ class GPSConfig:
             raise ValueError(
                 f"gps.policy_linearization must be one of {', '.join(POLICY_LINEARIZATIONS)}, "
                 f"got {self.policy_linearization!r}"
+            )
+        if self.c_step not in C_STEPS:
+            raise ValueError(f"gps.c_step must be one of {', '.join(C_STEPS)}, got {self.c_step!r}")
+        if self.c_step == "pi2" and self.algo != "mdgps":
+            raise ValueError(
+                "gps.c_step=pi2 is an MDGPS C-step (BADMM's adds dual terms it cannot weigh): "
+                "use algo=mdgps, or gps.c_step=lqr"
+            )
+        if not (self.pi2_kl > 0 and self.pi2_covariance_damping > 0):
+            raise ValueError(
+                "gps.pi2_kl and gps.pi2_covariance_damping must be positive, "
+                f"got {self.pi2_kl} and {self.pi2_covariance_damping}"
             )
         if self.conditions not in CONDITION_SETS:
             raise ValueError(
@@ -229,6 +257,7 @@ class WorldState:
     previous: Linearised | None = None
     policy: LinearGaussianGains | None = None  # the policy linearised around the samples
     policy_mean: torch.Tensor | None = None  # [M, N, T, dU]
+    sampled_costs: torch.Tensor | None = None  # [M, N, T] the samples' time-weighted costs
     regression_data: ReplayBuffer | None = None  # the S-step's (observation, target) pairs
     diagnostics: dict[str, float] = field(default_factory=dict)
 
@@ -355,8 +384,10 @@ class GPSTrainer:
         - ``expected_cost``: the C-step's own objective at its solution (under BADMM it adds
           the dual and policy terms, so it is not comparable with ``sampled_cost``);
         - ``kl``, ``eta``, ``step_mult``: the C-step's KL to its reference, its Lagrange
-          multiplier and the step-size multiplier; ``action_gap``: controller vs policy mean
-          action at the samples; ``nu`` (BADMM): the policy-KL weight; ``regression_loss``.
+          multiplier and the step-size multiplier (PI2: the sample weights' KL from uniform and
+          their temperature, means over steps; the step size stays 1); ``action_gap``:
+          controller vs policy mean action at the samples; ``nu`` (BADMM): the policy-KL
+          weight; ``regression_loss``.
         """
         start = time.perf_counter()
         states = list(self.states.values())
@@ -413,7 +444,8 @@ class GPSTrainer:
             cost = expand_cost(lambda x, u: world.state_cost(x, u, c.shaping), samples.X, samples.U, weights)
             check_finite("cost expansion", cost.C, world=state.name, iteration=self.iteration)
             with torch.no_grad():
-                sampled = (world.state_cost(samples.X, samples.U, c.shaping) * weights).sum(-1)
+                state.sampled_costs = world.state_cost(samples.X, samples.U, c.shaping) * weights
+                sampled = state.sampled_costs.sum(-1)
         with self._timed("dynamics"):
             self._update_dynamics_prior(state, samples)
             dynamics = fit_dynamics(
@@ -589,12 +621,40 @@ class GPSTrainer:
             step_mult=float(state.step_mult.mean()),
         )
 
+    def _pi2_step(self, state: WorldState) -> None:
+        """PI2 on this iteration's samples, around the distribution that drew them (the
+        controllers, or the policy's linearisation when it sampled)."""
+        c = self.config
+        with self._timed("lqr"):
+            try:
+                result = pi2_update(
+                    state.current.gains,
+                    state.samples.X,
+                    state.samples.U,
+                    state.sampled_costs,
+                    kl=c.pi2_kl,
+                    covariance_damping=c.pi2_covariance_damping,
+                )
+            except NumericalError as err:  # a covariance that is not positive definite
+                raise err.with_context(world=state.name, iteration=self.iteration) from err
+        check_finite("PI2 feed-forward", result.gains.k, world=state.name, iteration=self.iteration)
+        state.controller.set_gains(result.gains)
+        state.diagnostics.update(
+            expected_cost=float(result.expected_cost.mean()),
+            kl=float(result.kl.mean()),
+            eta=float(result.eta.mean()),
+            step_mult=float(state.step_mult.mean()),
+        )
+
     def _mdgps_update(self, states: Sequence[WorldState], outputs_ready: bool = False) -> None:
         """Mirror-descent GPS: C-step in a KL trust region around the linearised policy
         (computed here unless ``outputs_ready``: the policy is unchanged since it was)."""
         if not outputs_ready:
             self._policy_outputs(states)
         for state in states:
+            if self.config.c_step == "pi2":
+                self._pi2_step(state)
+                continue
             self._adapt_step(state)
             self._c_step(state, state.current.cost, state.policy)
         self._s_step(self.config.sgd_steps, {s.name: self._controller_targets(s) for s in states})
