@@ -154,6 +154,13 @@ def test_gps_single_world_samples_the_network_from_the_second_iteration_with_sam
     assert on["controllers_distance"][1] != off["controllers_distance"][1]
 
 
+def test_gps_single_world_runs_a_pi2_c_step_with_mdgps_and_refuses_it_with_badmm():
+    options = "--algo mdgps --c-step pi2 --pi2-kl 0.5 --conditions 4 --samples 3 --iterations 2 --sgd-steps 9"
+    figures = last_json("gps_single_world.py", *options.split(), timeout=600)
+    assert (figures["c_step"], figures["pi2_kl"], len(figures["controllers_distance"])) == ("pi2", 0.5, 2)
+    assert "use algo=mdgps" in single_world_refusal("--c-step", "pi2")  # BADMM, the default
+
+
 def test_gps_single_world_sizes_the_network_and_scores_random_conditions():
     """``--width`` sets every hidden layer of both modules (depths and interface kept) and
     ``--sgd-steps`` the S-step's length; ``--evaluate-on random`` scores further random
