@@ -41,6 +41,15 @@ def test_lqr_benchmark_reports_a_ratio_against_numpy():
     assert figures["max_abs_diff_K_k_chol"] < 1e-9 and figures["speedup_numpy_over_batched"] > 0
 
 
+def test_pi2_benchmark_agrees_with_the_gps_codes_dual_minimised_step_by_step():
+    """The bisection puts the weights at the KL bound, which is where scipy's minimum of REPS's
+    dual puts them, to the optimiser's tolerance."""
+    figures = last_json("pi2.py", "--conditions", "2", "--repeats", "1")
+    assert figures["max_kl_from_bound"] < 1e-9 and figures["max_rel_diff_eta"] < 1e-2
+    assert figures["max_abs_diff_k"] < 1e-2 and figures["max_rel_diff_cov"] < 1e-2
+    assert figures["speedup_loop_over_batched"] > 0
+
+
 def test_gps_iteration_benchmark_times_the_grid_a_run_trains_from_images():
     """The run's own grid and budget (here color_reach, shrunk): every phase, the policy's
     forward passes over the samples among them, with shares of the iteration that add up."""

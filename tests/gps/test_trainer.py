@@ -503,6 +503,20 @@ def test_a_pi2_c_step_lowers_the_cost_from_the_samples_alone(monkeypatch):
     assert all(0 < d["kl"] <= GPSConfig.pi2_kl + 1e-6 and d["step_mult"] == 1.0 for d in history)
     (state,) = trainer.states.values()
     assert state.sampled_costs.shape == (*state.samples.X.shape[:-1],)
+    # reweighting around the controllers, it needs no linearisation of the policy: none is fitted
+    assert state.policy is None and state.policy_prior.X is None
+
+
+def test_a_pi2_c_step_sampling_the_policy_reweights_around_its_linearisation():
+    """With ``sample_on_policy`` PI2 keeps the gains ``K`` of the policy's linearisation, the
+    distribution that drew the samples, and moves only the feed-forward term."""
+    trainer = trainer_for([("three_link", "reach_red")], algo="mdgps", c_step="pi2", sample_on_policy=True)
+    trainer.step()
+    (state,) = trainer.states.values()
+    trainer.step()  # samples the network
+    assert state.policy is not None and torch.equal(state.current.gains.K, state.policy.K)
+    assert torch.equal(state.controller.gains.K, state.policy.K)
+    assert not torch.allclose(state.controller.gains.k, state.policy.k)
 
 
 def test_pi2_is_an_mdgps_c_step():

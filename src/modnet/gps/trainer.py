@@ -54,9 +54,9 @@ from modnet.gps.dynamics import (
 )
 from modnet.gps.errors import NumericalError, check_finite
 from modnet.gps.loss import PolicyRegressionLoss
-from modnet.gps.lqr import LQRConfig, adapt_step_mult, kl_divergence, laplace_cost, lqr_forward
+from modnet.gps.lqr import LQRConfig, LQRResult, adapt_step_mult, kl_divergence, laplace_cost, lqr_forward
 from modnet.gps.lqr import solve_kl_constrained_lqr as c_step
-from modnet.gps.pi2 import pi2_update
+from modnet.gps.pi2 import PI2Result, pi2_update
 from modnet.gps.sampling import POLICY_KEYS, STATE_KEYS, Samples, WorldSampler, state_of
 from modnet.modules import PixelEncoder
 from modnet.specs import TORQUE_LIMIT
@@ -484,11 +484,16 @@ class GPSTrainer:
         first: a network untrained on its world can ask for far more torque than the arm has,
         and the controllers must start from, and the C-step stay near, what it does in the
         world.  Otherwise the network imitates the controllers, as in training.
+
+        PI2 (``c_step="pi2"``) needs the linearisation only where the policy sampled: it
+        reweights around what drew the samples. Elsewhere only the means are computed, and
+        ``state.policy`` is None.
         """
         as_applied = self._samples_policy()
+        linearise = as_applied or self.config.c_step == "lqr"
         with self._timed("policy"):
             self.bank.eval()
-            if self.config.policy_linearization == "jacobian":
+            if self.config.policy_linearization == "jacobian" and linearise:
                 out, jacobians = self._outputs_and_jacobians(states)
             else:
                 out, jacobians = self._forward_samples(states), [None] * len(states)
@@ -502,6 +507,9 @@ class GPSTrainer:
                 mean = mean.clamp(-TORQUE_LIMIT, TORQUE_LIMIT)
             state.policy_mean = mean
             self._record_action_gap(state)
+            if not linearise:
+                state.policy = None
+                continue
             covariance = torch.diag_embed(result["scale"].to(torch.float64).pow(2))
             where = dict(world=state.name, iteration=self.iteration)
             with self._timed("dynamics"):
@@ -613,6 +621,11 @@ class GPSTrainer:
             )
             raise self._with_dynamics_note(error, state)
         state.eta = result.eta
+        self._adopt(state, result)
+
+    @staticmethod
+    def _adopt(state: WorldState, result: LQRResult | PI2Result) -> None:
+        """Take a C-step's controllers and record its figures (means over conditions and steps)."""
         state.controller.set_gains(result.gains)
         state.diagnostics.update(
             expected_cost=float(result.expected_cost.mean()),
@@ -638,13 +651,7 @@ class GPSTrainer:
             except NumericalError as err:  # a covariance that is not positive definite
                 raise err.with_context(world=state.name, iteration=self.iteration) from err
         check_finite("PI2 feed-forward", result.gains.k, world=state.name, iteration=self.iteration)
-        state.controller.set_gains(result.gains)
-        state.diagnostics.update(
-            expected_cost=float(result.expected_cost.mean()),
-            kl=float(result.kl.mean()),
-            eta=float(result.eta.mean()),
-            step_mult=float(state.step_mult.mean()),
-        )
+        self._adopt(state, result)
 
     def _mdgps_update(self, states: Sequence[WorldState], outputs_ready: bool = False) -> None:
         """Mirror-descent GPS: C-step in a KL trust region around the linearised policy

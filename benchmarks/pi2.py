@@ -1,0 +1,112 @@
+"""Benchmark: the batched PI2 C-step (torch, every condition and step at once) vs the GPS code's way,
+a loop over conditions and steps that minimises REPS's dual for each temperature (scipy).
+
+Both weigh N samples per condition and step by ``exp(-cost_to_go / eta)``, with ``eta`` where
+the weights are ``kl`` from uniform, and refit the feed-forward term and the damped covariance
+(``modnet.gps.pi2``). Sizes: experiment 2's fine-tuning (M=32 conditions, N=5 samples, T=100
+steps, dX=16, dU=3). Prints medians and the ratio, and how far the two agree; the last line is
+one JSON object. Single-threaded, as the other benchmarks of the GPS numerics.
+
+    python benchmarks/pi2.py [--conditions 32] [--repeats 5]
+"""
+
+from __future__ import annotations
+
+import os
+
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+from _timing import median_ms  # noqa: E402
+from scipy.optimize import minimize  # noqa: E402
+
+from modnet.gps.controller import LinearGaussianGains  # noqa: E402
+from modnet.gps.pi2 import MIN_TEMPERATURE, pi2_update  # noqa: E402
+
+N, T, dX, dU = 5, 100, 16, 3
+KL, DAMPING = 1.0, 2.0
+f64 = torch.float64
+
+
+def problem(M: int, seed: int = 0):
+    """Random sampling gains and samples ``X, U``, with costs that favour some samples."""
+    g = torch.Generator().manual_seed(seed)
+    S = torch.randn(M, T, dU, dU, dtype=f64, generator=g)
+    sampling = LinearGaussianGains.from_covariance(
+        0.3 * torch.randn(M, T, dU, dX, dtype=f64, generator=g),
+        torch.randn(M, T, dU, dtype=f64, generator=g),
+        S @ S.transpose(-1, -2) + torch.eye(dU, dtype=f64),
+    )
+    X = torch.randn(M, N, T, dX, dtype=f64, generator=g)
+    noise = torch.randn(M, N, T, dU, 1, dtype=f64, generator=g)
+    U = sampling.mean_actions(X) + (sampling.chol.unsqueeze(1) @ noise).squeeze(-1)
+    costs = U.pow(2).sum(-1) + 0.1 * X.pow(2).sum(-1)
+    return sampling, X, U, costs
+
+
+def dual(eta: np.ndarray, kl: float, cost_to_go: np.ndarray) -> float:
+    """REPS's dual of one step's temperature (the GPS code's ``kl_dual``)."""
+    lowest = cost_to_go.min()
+    return float(eta[0] * kl - lowest + eta[0] * np.log(np.mean(np.exp(-(cost_to_go - lowest) / eta[0]))))
+
+
+def reference(K, cov_old, X, U, costs):
+    """One condition and step at a time: the temperature by minimising the dual, then the
+    weighted mean and the damped covariance."""
+    M = U.shape[0]
+    k, cov, eta = np.zeros((M, T, dU)), np.zeros((M, T, dU, dU)), np.zeros((M, T))
+    cost_to_go = np.flip(np.cumsum(np.flip(costs, -1), -1), -1)
+    for m in range(M):
+        for t in range(T):
+            S = cost_to_go[m, :, t]
+            res = minimize(dual, [10.0], args=(KL, S), bounds=[(MIN_TEMPERATURE, None)])
+            eta[m, t] = res.x[0]
+            w = np.exp(-(S - S.min()) / eta[m, t])
+            w /= w.sum()
+            ff = U[m, :, t] - X[m, :, t] @ K[m, t].T
+            k[m, t] = w @ ff
+            d = ff - k[m, t]
+            weighted = (w[:, None, None] * d[:, :, None] * d[:, None, :]).sum(0)
+            ratio = np.trace(np.linalg.solve(cov_old[m, t], weighted)) / dU
+            cov[m, t] = ratio ** (1 / DAMPING) * cov_old[m, t]
+    return k, cov, eta
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--conditions", type=int, default=32)
+    parser.add_argument("--repeats", type=int, default=5)
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+
+    sampling, X, U, costs = problem(args.conditions)
+    run = lambda: pi2_update(sampling, X, U, costs, kl=KL, covariance_damping=DAMPING)  # noqa: E731
+    as_np = tuple(t.numpy() for t in (sampling.K, sampling.cov, X, U, costs))
+    ours = run()
+    ref_k, ref_cov, ref_eta = reference(*as_np)
+    ours_ms = median_ms(run, args.repeats)
+    reference_ms = median_ms(lambda: reference(*as_np), args.repeats)
+    result = {
+        "benchmark": "pi2_update",
+        "M": args.conditions, "N": N, "T": T, "dX": dX, "dU": dU, "kl": KL,
+        "repeats": args.repeats,
+        "torch_threads": torch.get_num_threads(),
+        "batched_torch_median_ms": round(ours_ms, 3),
+        "scipy_dual_loop_median_ms": round(reference_ms, 3),
+        "speedup_loop_over_batched": round(reference_ms / ours_ms, 2),
+        "max_abs_diff_k": float(np.abs(ours.gains.k.numpy() - ref_k).max()),
+        "max_rel_diff_cov": float((np.abs(ours.gains.cov.numpy() - ref_cov) / np.abs(ref_cov).max()).max()),
+        "max_rel_diff_eta": float((np.abs(ours.eta.numpy() - ref_eta) / ref_eta).max()),
+        "max_kl_from_bound": float((ours.kl - KL).abs().max()),
+    }
+    print(f"batched torch: {ours_ms:.2f} ms, scipy loop: {reference_ms:.2f} ms (median of {args.repeats})")
+    print(json.dumps(result))
+
+
+if __name__ == "__main__":
+    main()
