@@ -81,6 +81,10 @@ def test_overrides_reach_the_library_configs():
     pi2 = composed("universe=tiny", "algo=badmm", "eval.finetune_algo=mdgps", "eval.finetune_c_step=pi2")
     assert pi2.finetune_gps_config() == dataclasses.replace(pi2.gps_config(), algo="mdgps", c_step="pi2")
     assert (pi2.gps_config().algo, pi2.gps_config().c_step) == ("badmm", "lqr")  # training's own
+    wider = composed("universe=tiny", "eval.finetune_num_conditions=8")
+    assert wider.finetune_gps_config() == dataclasses.replace(wider.gps_config(), num_conditions=8)
+    with pytest.raises(ConfigError, match=r"num_conditions must be at least 4 .*\(with num_conditions=2\)"):
+        validate(composed("universe=tiny", "eval.finetune_num_conditions=2"))
 
 
 def test_a_pi2_c_step_under_badmm_is_refused_before_any_work_naming_the_fix():

@@ -192,6 +192,8 @@ class EvalConfig:
             None: the training's. Not part of a checkpoint's identity.
         finetune_c_step: the C-step of every fine-tuning start ("lqr", or "pi2" with MDGPS);
             None: ``gps.c_step``. Not part of a checkpoint's identity.
+        finetune_num_conditions: the scenes every fine-tuning start samples on the held-out
+            world; None: ``gps.num_conditions``. Not part of a checkpoint's identity.
     """
 
     conditions: str = "test"
@@ -212,6 +214,7 @@ class EvalConfig:
     finetune_policy_linearization: str | None = None
     finetune_algo: str | None = None
     finetune_c_step: str | None = None
+    finetune_num_conditions: int | None = None
 
 
 #: the GPSConfig fields an ``eval.finetune_<field>`` sets for the fine-tuning starts alone
@@ -224,6 +227,7 @@ FINETUNE_GPS_OVERRIDES = (
     "policy_linearization",
     "algo",
     "c_step",
+    "num_conditions",
 )
 
 
@@ -287,8 +291,8 @@ class RunConfig:
         """The :class:`GPSConfig` of the fine-tuning starts: the training's, with
         ``eval.finetune_samples_per_condition``, ``eval.finetune_kl_step``,
         ``eval.finetune_sgd_steps``, ``eval.finetune_dynamics_prior_per_condition``,
-        ``eval.finetune_policy_linearization``, ``eval.finetune_algo`` and
-        ``eval.finetune_c_step`` when set, and sampling the policy with
+        ``eval.finetune_policy_linearization``, ``eval.finetune_algo``,
+        ``eval.finetune_c_step`` and ``eval.finetune_num_conditions`` when set, and sampling the policy with
         ``eval.finetune_sample_on_policy``.
 
         Examples:
