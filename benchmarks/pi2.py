@@ -30,6 +30,8 @@ from modnet.gps.pi2 import MIN_TEMPERATURE, pi2_update  # noqa: E402
 
 N, T, dX, dU = 5, 100, 16, 3
 KL, DAMPING = 1.0, 2.0
+#: L-BFGS-B's tolerances, tighter than scipy's defaults
+TIGHT = {"ftol": 1e-15, "gtol": 1e-12}
 f64 = torch.float64
 
 
@@ -49,10 +51,15 @@ def problem(M: int, seed: int = 0):
     return sampling, X, U, costs
 
 
-def dual(eta: np.ndarray, kl: float, cost_to_go: np.ndarray) -> float:
-    """REPS's dual of one step's temperature (the GPS code's ``kl_dual``)."""
-    lowest = cost_to_go.min()
-    return float(eta[0] * kl - lowest + eta[0] * np.log(np.mean(np.exp(-(cost_to_go - lowest) / eta[0]))))
+def dual(eta: np.ndarray, kl: float, cost_to_go: np.ndarray) -> tuple[float, np.ndarray]:
+    """REPS's dual of one step's temperature (the GPS code's ``kl_dual``) and its derivative,
+    ``kl - KL(weights || uniform)``: zero where the weights meet the bound."""
+    shifted = -(cost_to_go - cost_to_go.min()) / eta[0]
+    log_mean = np.log(np.mean(np.exp(shifted)))
+    w = np.exp(shifted - shifted.max())
+    w /= w.sum()
+    divergence = float(np.sum(w * np.log(np.maximum(w, 1e-300) * len(w))))
+    return float(eta[0] * kl - cost_to_go.min() + eta[0] * log_mean), np.array([kl - divergence])
 
 
 def reference(K, cov_old, X, U, costs):
@@ -64,7 +71,8 @@ def reference(K, cov_old, X, U, costs):
     for m in range(M):
         for t in range(T):
             S = cost_to_go[m, :, t]
-            res = minimize(dual, [10.0], args=(KL, S), bounds=[(MIN_TEMPERATURE, None)])
+            bounds = [(MIN_TEMPERATURE, None)]
+            res = minimize(dual, [10.0], args=(KL, S), jac=True, bounds=bounds, options=TIGHT)
             eta[m, t] = res.x[0]
             w = np.exp(-(S - S.min()) / eta[m, t])
             w /= w.sum()
