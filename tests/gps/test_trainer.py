@@ -489,18 +489,21 @@ def test_per_condition_priors_each_buffer_their_own_conditions_trajectories(monk
 
 
 def test_a_pi2_c_step_lowers_the_cost_from_the_samples_alone(monkeypatch):
-    """``c_step="pi2"`` (MDGPS): the controllers move by reweighting their samples; the LQR on
-    the fitted dynamics is never called, and the sampled cost falls on a real MuJoCo world."""
+    """``c_step="pi2"`` (MDGPS): the controllers move by reweighting their samples; no model is
+    built (no cost expansion, no dynamics fit, no LQR), and the sampled cost falls on a real
+    MuJoCo world."""
 
-    def no_lqr(*args, **kwargs):
-        raise AssertionError("the PI2 C-step must not plan on the fitted dynamics")
+    def no_model(*args, **kwargs):
+        raise AssertionError("the PI2 C-step needs no model of the world")
 
-    monkeypatch.setattr(trainer_module, "c_step", no_lqr)
+    for name in ("c_step", "fit_dynamics", "expand_cost"):
+        monkeypatch.setattr(trainer_module, name, no_model)
     trainer = trainer_for([("three_link", "reach_red")], algo="mdgps", c_step="pi2", samples_per_condition=8)
     history = [trainer.step()["three_link/reach_red"] for _ in range(6)]
     assert history[-1]["sampled_cost"] < 0.8 * history[0]["sampled_cost"], history
     assert history[-1]["distance"] < history[0]["distance"], history
     assert all(0 < d["kl"] <= GPSConfig.pi2_kl + 1e-6 and d["step_mult"] == 1.0 for d in history)
+    assert "predicted_cost" not in history[-1]  # nothing to predict with
     (state,) = trainer.states.values()
     assert state.sampled_costs.shape == (*state.samples.X.shape[:-1],)
     # reweighting around the controllers, it needs no linearisation of the policy: none is fitted
@@ -517,6 +520,19 @@ def test_a_pi2_c_step_sampling_the_policy_reweights_around_its_linearisation():
     assert state.policy is not None and torch.equal(state.current.gains.K, state.policy.K)
     assert torch.equal(state.controller.gains.K, state.policy.K)
     assert not torch.allclose(state.controller.gains.k, state.policy.k)
+
+
+def test_a_pi2_trainer_without_a_model_resumes_exactly():
+    options = dict(worlds=GRID[:1], algo="mdgps", c_step="pi2")
+    original = trainer_for(**options)
+    original.step()
+    buffer = io.BytesIO()
+    torch.save(original.state_dict(), buffer)
+    buffer.seek(0)
+    expected = original.step()
+    resumed = trainer_for(**options)
+    resumed.load_state_dict(torch.load(buffer, weights_only=True))
+    assert resumed.step() == expected
 
 
 def test_pi2_is_an_mdgps_c_step():

@@ -233,11 +233,12 @@ class GPSConfig:
 
 @dataclass
 class Linearised:
-    """What a C-step needs of one iteration: its controller, fitted dynamics and cost."""
+    """What a C-step needs of one iteration: its controller, fitted dynamics and cost (the
+    last two None under PI2, which needs no model)."""
 
     gains: LinearGaussianGains
-    dynamics: LinearGaussianDynamics
-    cost: QuadraticCost
+    dynamics: LinearGaussianDynamics | None
+    cost: QuadraticCost | None
 
 
 @dataclass
@@ -380,7 +381,7 @@ class GPSTrainer:
           this iteration's samples;
         - ``predicted_cost``: the new controllers' task cost predicted under this iteration's
           fitted dynamics; compare it with the next iteration's ``sampled_cost`` to see how
-          far the fitted dynamics can be trusted;
+          far the fitted dynamics can be trusted (not under PI2, which fits none);
         - ``expected_cost``: the C-step's own objective at its solution (under BADMM it adds
           the dual and policy terms, so it is not comparable with ``sampled_cost``);
         - ``kl``, ``eta``, ``step_mult``: the C-step's KL to its reference, its Lagrange
@@ -426,8 +427,8 @@ class GPSTrainer:
         return self.bank.compose(*self.bank.world(state.name))
 
     def _sample_and_fit(self, state: WorldState, policy=None) -> None:
-        """Sample the world (with its controllers unless ``policy`` is given), expand the cost
-        and fit the dynamics."""
+        """Sample the world (with its controllers unless ``policy`` is given), and for the LQR
+        expand the cost and fit the dynamics (PI2 needs neither: a fifth of its iteration)."""
         c, world = self.config, state.sampler.world
         with self._timed("sampling"):
             self.bank.eval()  # no dropout when a composed policy acts
@@ -441,21 +442,26 @@ class GPSTrainer:
             check_finite(name, value, world=state.name, iteration=self.iteration)
         with self._timed("cost"):
             weights = time_weights(state.sampler.horizon, c.cost_ramp, c.final_cost_multiplier)
-            cost = expand_cost(lambda x, u: world.state_cost(x, u, c.shaping), samples.X, samples.U, weights)
-            check_finite("cost expansion", cost.C, world=state.name, iteration=self.iteration)
             with torch.no_grad():
                 state.sampled_costs = world.state_cost(samples.X, samples.U, c.shaping) * weights
                 sampled = state.sampled_costs.sum(-1)
-        with self._timed("dynamics"):
-            self._update_dynamics_prior(state, samples)
-            dynamics = fit_dynamics(
-                samples.X,
-                samples.U,
-                state.dynamics_prior,
-                ridge=c.dynamics_ridge,
-                world=state.name,
-                iteration=self.iteration,
-            )
+            cost = None
+            if c.c_step == "lqr":
+                task_cost = lambda x, u: world.state_cost(x, u, c.shaping)  # noqa: E731
+                cost = expand_cost(task_cost, samples.X, samples.U, weights)
+                check_finite("cost expansion", cost.C, world=state.name, iteration=self.iteration)
+        dynamics = None
+        if c.c_step == "lqr":
+            with self._timed("dynamics"):
+                self._update_dynamics_prior(state, samples)
+                dynamics = fit_dynamics(
+                    samples.X,
+                    samples.U,
+                    state.dynamics_prior,
+                    ridge=c.dynamics_ridge,
+                    world=state.name,
+                    iteration=self.iteration,
+                )
         state.previous = state.current
         state.current = Linearised(frozen(state.controller.gains), dynamics, cost)
         state.samples = samples
@@ -776,9 +782,11 @@ class GPSTrainer:
         return dict(self.drawn)
 
     def _diagnose(self, state: WorldState) -> dict[str, float]:
-        """The iteration's figures; the prediction once, for the controllers the last C-step left."""
-        predicted = laplace_cost(state.controller.gains, state.current.dynamics, state.current.cost)
-        state.diagnostics["predicted_cost"] = float(predicted.mean())
+        """The iteration's figures; the prediction once, for the controllers the last C-step left
+        (with fitted dynamics: not under PI2)."""
+        if state.current.dynamics is not None:
+            predicted = laplace_cost(state.controller.gains, state.current.dynamics, state.current.cost)
+            state.diagnostics["predicted_cost"] = float(predicted.mean())
         return dict(sorted(state.diagnostics.items()))
 
     # --- checkpoints --------------------------------------------------------------------------------
@@ -851,8 +859,11 @@ def _linearised_dict(lin: Linearised | None) -> dict | None:
 def _linearised_from(d: dict | None) -> Linearised | None:
     if d is None:
         return None
+    dynamics, cost = d["dynamics"], d["cost"]  # None under PI2
     return Linearised(
-        _gains_from(d["gains"]), LinearGaussianDynamics(**d["dynamics"]), QuadraticCost(**d["cost"])
+        _gains_from(d["gains"]),
+        None if dynamics is None else LinearGaussianDynamics(**dynamics),
+        None if cost is None else QuadraticCost(**cost),
     )
 
 
