@@ -34,7 +34,7 @@ from modnet.bank import BankConfig, ModuleBank
 from modnet.evaluate import FINETUNE_STARTS
 from modnet.gps.badmm import BADMMConfig
 from modnet.gps.dynamics import DynamicsPriorConfig
-from modnet.gps.trainer import POLICY_LINEARIZATIONS, GPSConfig
+from modnet.gps.trainer import GPSConfig
 from modnet.pretrain import PretrainConfig
 from modnet.universes import Split, Universe, get_universe
 from modnet.worlds import CONDITION_SETS, NUM_FIXED_CONDITIONS
@@ -280,12 +280,7 @@ class RunConfig:
 
     def gps_config(self, **changes: Any) -> GPSConfig:
         """The library's :class:`GPSConfig` of this run (``changes`` override fields)."""
-        config = build(GPSConfig, self.gps, "gps.")
-        try:
-            return dataclasses.replace(config, **changes)
-        except ValueError as err:  # a fine-tuning override the training's options do not allow
-            names = ", ".join(f"{name}={value}" for name, value in changes.items())
-            raise ConfigError(f"{err} (with {names})") from err
+        return dataclasses.replace(build(GPSConfig, self.gps, "gps."), **changes)
 
     def finetune_gps_config(self) -> GPSConfig:
         """The :class:`GPSConfig` of the fine-tuning starts: the training's, with
@@ -307,7 +302,12 @@ class RunConfig:
         }
         if self.eval.finetune_sample_on_policy:
             changes["sample_on_policy"] = True
-        return self.gps_config(**changes)
+        config = self.gps_config()
+        try:  # GPSConfig checks each value, and what it allows beside the training's options
+            return dataclasses.replace(config, **changes)
+        except ValueError as err:
+            keys = ", ".join(f"eval.finetune_{name}={value}" for name, value in changes.items())
+            raise ConfigError(f"{keys}: {err}") from err
 
     def bank_config(self) -> BankConfig:
         return build(BankConfig, self.bank, "bank.")
@@ -329,7 +329,7 @@ class RunConfig:
 
     def check(self) -> None:
         """Values no schema type can rule out; :class:`ConfigError` naming the key."""
-        self.gps_config()
+        self.finetune_gps_config()  # the training's GPS options, then fine-tuning's overrides
         self.bank_config()
         self.pretrain_config()
         if self.bank.policy not in ("modular", "monolithic"):
@@ -341,26 +341,6 @@ class RunConfig:
         if self.logger.backend not in LOGGERS:
             raise ConfigError(
                 f"logger.backend must be one of {', '.join(LOGGERS)}, got {self.logger.backend!r}"
-            )
-        samples = self.eval.finetune_samples_per_condition
-        if samples is not None and samples < 1:
-            raise ConfigError(
-                "eval.finetune_samples_per_condition must be at least 1 "
-                f"(or null: gps.samples_per_condition), got {samples}"
-            )
-        kl_step = self.eval.finetune_kl_step
-        if kl_step is not None and not kl_step > 0:
-            raise ConfigError(f"eval.finetune_kl_step must be positive (or null: gps.kl_step), got {kl_step}")
-        sgd_steps = self.eval.finetune_sgd_steps
-        if sgd_steps is not None and sgd_steps < 1:
-            raise ConfigError(
-                f"eval.finetune_sgd_steps must be at least 1 (or null: gps.sgd_steps), got {sgd_steps}"
-            )
-        linearization = self.eval.finetune_policy_linearization
-        if linearization is not None and linearization not in POLICY_LINEARIZATIONS:
-            raise ConfigError(
-                f"eval.finetune_policy_linearization must be one of {', '.join(POLICY_LINEARIZATIONS)} "
-                f"(or null: gps.policy_linearization), got {linearization!r}"
             )
         unknown = sorted(set(self.eval.finetune_starts) - set(FINETUNE_STARTS))
         if unknown:
