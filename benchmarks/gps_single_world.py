@@ -7,6 +7,7 @@
     python benchmarks/gps_single_world.py --task push --max-policy-weight 1e-3 --evaluate-on train
     python benchmarks/gps_single_world.py --task push --width 256 --sgd-steps 3000  # a larger network
     python benchmarks/gps_single_world.py --task push --algo mdgps --sample-on-policy  # on-policy MDGPS
+    python benchmarks/gps_single_world.py --task push --conditions 4 --algo mdgps --c-step pilqr  # or pi2
 
 The distance is the task's (end-effector or object to goal) averaged over the last 5 steps
 of a deterministic rollout of the composed policy (not the local controllers) from each
@@ -33,7 +34,7 @@ import torch
 from modnet.bank import ModuleBank
 from modnet.evaluate import evaluation_env, rollout
 from modnet.gps.badmm import BADMMConfig
-from modnet.gps.trainer import GPSConfig, GPSTrainer
+from modnet.gps.trainer import C_STEPS, GPSConfig, GPSTrainer
 from modnet.worlds import get_world, task_spec
 
 MOVED = 0.01  # a final distance this much below or above the start counts as closer or farther
@@ -131,12 +132,16 @@ def main() -> None:
     parser.add_argument(
         "--c-step",
         default=GPSConfig.c_step,
-        choices=["lqr", "pi2"],
-        help="the C-step: the KL-constrained LQR on fitted dynamics, or PI2's reweighting of the "
-        "samples by their cost to go (model-free; with --algo mdgps)",
+        choices=list(C_STEPS),
+        help="the C-step: the KL-constrained LQR on fitted dynamics, PI2's reweighting of the "
+        "samples by their cost to go (model-free), or PILQR, the LQR then PI2 on the cost its "
+        "model misses (both with --algo mdgps)",
     )
     parser.add_argument(
-        "--pi2-kl", type=float, default=GPSConfig.pi2_kl, help="PI2: the KL of each step's sample weights"
+        "--pi2-kl",
+        type=float,
+        default=GPSConfig.pi2_kl,
+        help="PI2, PILQR: the KL of each step's sample weights",
     )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--trace", action="store_true", help="where the object goes, per condition")
@@ -210,7 +215,7 @@ def main() -> None:
                 "trajectory_only": args.trajectory_only,
                 "sample_on_policy": args.sample_on_policy,
                 "c_step": args.c_step,
-                **({"pi2_kl": args.pi2_kl} if args.c_step == "pi2" else {}),
+                **({"pi2_kl": args.pi2_kl} if args.c_step != "lqr" else {}),
                 "max_policy_weight": config.badmm.max_policy_weight,
                 "evaluated_on": args.evaluate_on,
                 "width": bank.config.task_hidden[0],

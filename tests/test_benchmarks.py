@@ -163,11 +163,12 @@ def test_gps_single_world_samples_the_network_from_the_second_iteration_with_sam
     assert on["controllers_distance"][1] != off["controllers_distance"][1]
 
 
-def test_gps_single_world_runs_a_pi2_c_step_with_mdgps_and_refuses_it_with_badmm():
-    options = "--algo mdgps --c-step pi2 --pi2-kl 0.5 --conditions 4 --samples 3 --iterations 2 --sgd-steps 9"
-    figures = last_json("gps_single_world.py", *options.split(), timeout=600)
-    assert (figures["c_step"], figures["pi2_kl"], len(figures["controllers_distance"])) == ("pi2", 0.5, 2)
-    assert "use algo=mdgps" in single_world_refusal("--c-step", "pi2")  # BADMM, the default
+@pytest.mark.parametrize("c_step", ["pi2", "pilqr"])
+def test_gps_single_world_runs_a_pi2_c_step_with_mdgps_and_refuses_it_with_badmm(c_step):
+    options = "--algo mdgps --pi2-kl 0.5 --conditions 4 --samples 3 --iterations 2 --sgd-steps 9"
+    figures = last_json("gps_single_world.py", "--c-step", c_step, *options.split(), timeout=600)
+    assert (figures["c_step"], figures["pi2_kl"], len(figures["controllers_distance"])) == (c_step, 0.5, 2)
+    assert "use algo=mdgps" in single_world_refusal("--c-step", c_step)  # BADMM, the default
 
 
 def test_gps_single_world_sizes_the_network_and_scores_random_conditions():

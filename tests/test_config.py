@@ -86,7 +86,8 @@ def test_overrides_reach_the_library_configs():
 
 
 def test_a_pi2_c_step_under_badmm_is_refused_before_any_work_naming_the_fix():
-    for overrides in (["gps.c_step=pi2", "algo=badmm"], ["algo=badmm", "eval.finetune_c_step=pi2"]):
+    refused = (["gps.c_step=pi2", "algo=badmm"], ["algo=badmm", "eval.finetune_c_step=pi2"])
+    for overrides in (*refused, ["algo=badmm", "eval.finetune_c_step=pilqr"]):
         run = composed("universe=tiny", *overrides)
         with pytest.raises(ConfigError, match="use algo=mdgps"):
             validate(run)

@@ -190,7 +190,7 @@ class EvalConfig:
             checkpoint's identity.
         finetune_algo: the GPS algorithm of every fine-tuning start ("mdgps" or "badmm");
             None: the training's. Not part of a checkpoint's identity.
-        finetune_c_step: the C-step of every fine-tuning start ("lqr", or "pi2" with MDGPS);
+        finetune_c_step: the C-step of every fine-tuning start ("lqr", or "pi2" or "pilqr" with MDGPS);
             None: ``gps.c_step``. Not part of a checkpoint's identity.
         finetune_num_conditions: the scenes every fine-tuning start samples on the held-out
             world; None: ``gps.num_conditions``. Not part of a checkpoint's identity.

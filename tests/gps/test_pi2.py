@@ -1,4 +1,6 @@
-"""PI2's C-step: the temperature meets its KL bound, the update follows the cheaper samples."""
+"""PI2's C-step: the temperature meets its KL bound, the update follows the cheaper samples;
+PILQR's: the model's cost of each sample is exact on a linear world, and PI2 then moves the
+LQR's controllers only by the cost the model misses."""
 
 import math
 
@@ -6,8 +8,17 @@ import pytest
 import torch
 
 from modnet.gps.controller import LinearGaussianGains
+from modnet.gps.cost import QuadraticCost
+from modnet.gps.dynamics import LinearGaussianDynamics
 from modnet.gps.errors import NumericalError
-from modnet.gps.pi2 import MIN_TEMPERATURE, pi2_update, temperatures
+from modnet.gps.pi2 import (
+    MIN_TEMPERATURE,
+    model_costs,
+    pi2_update,
+    pilqr_update,
+    sampling_noise,
+    temperatures,
+)
 
 
 def gaussian(M=1, T=4, dU=2, dX=3, K=None, k=None, variance=1.0) -> LinearGaussianGains:
@@ -90,3 +101,89 @@ def test_covariance_damping_must_be_positive():
     X, U = torch.zeros(1, 3, 4, 3), torch.zeros(1, 3, 4, 2)
     with pytest.raises(ValueError, match="covariance_damping must be positive"):
         pi2_update(gains, X, U, torch.zeros(1, 3, 4), covariance_damping=0.0)
+
+
+class LinearWorld:
+    """``x' = A x + B u`` from a fixed ``x0``, cost ``0.5 tau' C tau + c' tau`` per step: a
+    world the fitted model describes exactly."""
+
+    def __init__(self, M=2, T=5, dX=3, dU=2, seed=4):
+        g = torch.Generator().manual_seed(seed)
+        d = dX + dU
+        A = torch.eye(dX) + 0.1 * torch.randn(dX, dX, generator=g)
+        self.F = torch.cat([A, torch.randn(dX, dU, generator=g)], -1).to(torch.float64).expand(M, T, dX, d)
+        self.x0 = torch.randn(M, dX, generator=g, dtype=torch.float64)
+        root = torch.randn(d, d, generator=g, dtype=torch.float64)
+        self.cost = QuadraticCost(
+            (root @ root.T + torch.eye(d)).expand(M, T, d, d).to(torch.float64),
+            torch.randn(M, T, d, generator=g, dtype=torch.float64),
+            torch.zeros(M, T, dtype=torch.float64),
+        )
+        self.dynamics = LinearGaussianDynamics(
+            self.F,
+            torch.zeros(M, T, dX, dtype=torch.float64),
+            torch.zeros(M, T, dX, dX, dtype=torch.float64),
+            self.x0,
+            torch.zeros(M, dX, dX, dtype=torch.float64),
+        )
+
+    def run(self, gains: LinearGaussianGains, noise: torch.Tensor):
+        """States, actions and the true per-step costs of ``u = K x + k + chol noise``."""
+        M, N, T, _ = noise.shape
+        x, xs, us = self.x0.unsqueeze(1).expand(M, N, -1), [], []
+        for t in range(T):
+            u = (gains.K[:, t, None] @ x.unsqueeze(-1)).squeeze(-1) + gains.k[:, t, None]
+            u = u + (gains.chol[:, t, None] @ noise[:, :, t].unsqueeze(-1)).squeeze(-1)
+            xs.append(x)
+            us.append(u)
+            x = (self.F[:, t, None] @ torch.cat([x, u], -1).unsqueeze(-1)).squeeze(-1)
+        X, U = torch.stack(xs, 2), torch.stack(us, 2)
+        return X, U, self.cost(torch.cat([X, U], -1).transpose(0, 1)).transpose(0, 1)
+
+
+def antithetic_noise(M, N, T, dU, seed=5):
+    half = torch.randn(M, N // 2, T, dU, generator=torch.Generator().manual_seed(seed), dtype=torch.float64)
+    return torch.cat([half, -half], 1)  # mean exactly zero
+
+
+def test_the_sampling_noise_and_the_models_cost_of_each_sample_are_exact_on_a_linear_world():
+    world = LinearWorld()
+    g = torch.Generator().manual_seed(6)
+    K = 0.3 * torch.randn(2, 5, 2, 3, generator=g, dtype=torch.float64)
+    sampling = gaussian(M=2, T=5, K=K, variance=0.5)
+    noise = torch.randn(2, 6, 5, 2, generator=g, dtype=torch.float64)
+    X, U, costs = world.run(sampling, noise)
+    torch.testing.assert_close(sampling_noise(sampling, X, U), noise)
+    torch.testing.assert_close(model_costs(sampling, world.dynamics, world.cost, noise), costs)
+
+
+def test_where_the_model_explains_every_sample_pilqr_keeps_the_lqrs_step():
+    """No residual: the weights are uniform, and the noise replayed through the LQR's new
+    controllers averages to their own feed-forward."""
+    world, (M, N, T, dU) = LinearWorld(), (2, 8, 5, 2)
+    sampling = gaussian(M=M, T=T, variance=0.5)
+    X, U, costs = world.run(sampling, antithetic_noise(M, N, T, dU))
+    g = torch.Generator().manual_seed(7)
+    lqr = gaussian(
+        M=M, T=T, K=torch.randn(M, T, dU, 3, generator=g, dtype=torch.float64),
+        k=torch.randn(M, T, dU, generator=g, dtype=torch.float64), variance=0.2,
+    )
+    result = pilqr_update(lqr, sampling, world.dynamics, world.cost, X, U, costs)
+    assert float(result.residual_share.max()) < 1e-10
+    assert torch.allclose(result.kl, torch.zeros_like(result.kl), atol=1e-10)
+    assert torch.equal(result.gains.K, lqr.K)
+    torch.testing.assert_close(result.gains.k, lqr.k)
+
+
+def test_pilqr_moves_the_lqrs_controllers_by_the_cost_the_model_misses():
+    """The samples cost ``5 u_0`` more than the model says: PILQR lowers the first action
+    against the LQR's step, and leaves the second, which the model prices right, near it."""
+    world, (M, N, T, dU) = LinearWorld(), (2, 400, 5, 2)
+    sampling = gaussian(M=M, T=T, variance=0.5)
+    X, U, costs = world.run(sampling, antithetic_noise(M, N, T, dU))
+    missed = 5.0 * U[..., 0]
+    result = pilqr_update(sampling, sampling, world.dynamics, world.cost, X, U, costs + missed)
+    assert float(result.residual_share.min()) > 0
+    step = result.gains.k - sampling.k
+    assert bool((step[..., 0] < 0).all()), step
+    assert float(step[..., 1].abs().mean()) < 0.2 * float(step[..., 0].abs().mean()), step

@@ -535,10 +535,33 @@ def test_a_pi2_trainer_without_a_model_resumes_exactly():
     assert_resumes_exactly(original, **options)
 
 
-def test_pi2_is_an_mdgps_c_step():
-    with pytest.raises(ValueError, match="algo=mdgps"):
-        GPSConfig(c_step="pi2")
-    with pytest.raises(ValueError, match="lqr, pi2"):
+def test_a_pilqr_c_step_moves_the_lqrs_controllers_by_what_its_model_misses(monkeypatch):
+    """``c_step="pilqr"`` (MDGPS): after each LQR step, PI2 on the residual cost moves its
+    feed-forward and keeps its gains ``K``; the share of the cost the model misses is
+    recorded, and the sampled cost falls on a real MuJoCo world."""
+    lqr_steps, lqr = [], trainer_module.c_step
+
+    def recording(*args, **kwargs):
+        lqr_steps.append(lqr(*args, **kwargs))
+        return lqr_steps[-1]
+
+    monkeypatch.setattr(trainer_module, "c_step", recording)
+    options = dict(algo="mdgps", c_step="pilqr", samples_per_condition=8)
+    trainer = trainer_for([("three_link", "reach_red")], **options)
+    history = [trainer.step()["three_link/reach_red"] for _ in range(6)]
+    assert history[-1]["sampled_cost"] < 0.8 * history[0]["sampled_cost"], history
+    assert all(0 < d["residual_share"] < 10 for d in history), history
+    assert len(lqr_steps) == 6 and "predicted_cost" in history[-1]
+    (state,) = trainer.states.values()
+    assert torch.equal(state.controller.gains.K, lqr_steps[-1].gains.K)
+    assert not torch.allclose(state.controller.gains.k, lqr_steps[-1].gains.k)
+
+
+def test_pi2_and_pilqr_are_mdgps_c_steps():
+    for c_step in ("pi2", "pilqr"):
+        with pytest.raises(ValueError, match=f"c_step={c_step} is an MDGPS C-step.*algo=mdgps"):
+            GPSConfig(c_step=c_step)
+    with pytest.raises(ValueError, match="lqr, pi2, pilqr"):
         GPSConfig(c_step="cem", algo="mdgps")
     with pytest.raises(ValueError, match="must be positive"):
         GPSConfig(c_step="pi2", algo="mdgps", pi2_kl=0.0)

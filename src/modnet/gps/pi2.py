@@ -14,6 +14,12 @@ Nothing here is fitted across a contact that only some samples make: a sample th
 the object is weighted by what it achieved, which is what a C-step on contact-rich tasks
 needs (RESULTS, "the physics or the learner?").
 
+PILQR (Chebotar et al. 2017; the GPS code's ``TrajOptPILQR``) combines the two:
+:func:`pilqr_update` takes the LQR's new controllers and lets PI2 move their feed-forward by
+what the fitted model does not explain, each sample's cost less the cost the linear dynamics
+and quadratic cost predict for its noise (:func:`model_costs`). Where the model explains every
+sample it leaves the LQR's step; where a contact makes the model wrong, the samples decide.
+
 Examples:
     >>> import torch
     >>> from modnet.gps.controller import LinearGaussianGains
@@ -36,9 +42,11 @@ from dataclasses import dataclass
 import torch
 
 from modnet.gps.controller import LinearGaussianGains
+from modnet.gps.cost import QuadraticCost
+from modnet.gps.dynamics import LinearGaussianDynamics
 from modnet.gps.linalg import symmetrize
 
-__all__ = ["PI2Result", "pi2_update", "temperatures"]
+__all__ = ["PI2Result", "model_costs", "pi2_update", "pilqr_update", "sampling_noise", "temperatures"]
 
 #: the lowest temperature searched (the GPS code's ``min_temperature``) and the highest
 MIN_TEMPERATURE = 1e-3
@@ -49,12 +57,20 @@ MAX_TEMPERATURE = 1e16
 class PI2Result:
     """A PI2 step: the new ``gains``; per condition and step the temperature ``eta [M, T]`` and
     the weights' KL from uniform ``kl [M, T]``; ``expected_cost [M]``, the reweighted
-    samples' cost over the whole horizon (their weights at the first step)."""
+    samples' cost over the whole horizon (their weights at the first step). PILQR adds
+    ``residual_share [M]``: the share of the samples' cost the fitted model does not explain
+    (mean over samples of ``sum_t |residual|``, over that of ``sum_t |cost|``)."""
 
     gains: LinearGaussianGains
     eta: torch.Tensor
     kl: torch.Tensor
     expected_cost: torch.Tensor
+    residual_share: torch.Tensor | None = None
+
+
+def _cost_to_go(costs: torch.Tensor) -> torch.Tensor:
+    """``sum_{t' >= t} c_t'`` along the last dim."""
+    return costs.flip(-1).cumsum(-1).flip(-1)
 
 
 def _weights(cost_to_go: torch.Tensor, eta: torch.Tensor) -> torch.Tensor:
@@ -100,19 +116,22 @@ def pi2_update(
     *,
     kl: float = 1.0,
     covariance_damping: float = 2.0,
+    eta: torch.Tensor | None = None,
 ) -> PI2Result:
     """The PI2 step from samples ``X [M, N, T, dX]``, ``U [M, N, T, dU]`` drawn by the
     linear-Gaussian distribution ``sampling``, with per-step costs ``costs [M, N, T]``.
 
     ``covariance_damping`` (> 0) sets how fast the exploration shrinks: the new covariance
     is ``sampling.cov`` times ``(tr(cov_old^-1 cov_weighted) / dU) ** (1 / damping)``, so it
-    stays positive definite and keeps the shape of the old one.
+    stays positive definite and keeps the shape of the old one. ``eta [M, T]``, when given,
+    fixes the temperatures instead of meeting ``kl`` (PILQR's second pass).
     """
     if not covariance_damping > 0:
         raise ValueError(f"covariance_damping must be positive, got {covariance_damping}")
     X, U, costs = X.to(torch.float64), U.to(torch.float64), costs.to(torch.float64)
-    cost_to_go = costs.flip(-1).cumsum(-1).flip(-1)  # [M, N, T]
-    eta = temperatures(cost_to_go, kl)
+    cost_to_go = _cost_to_go(costs)  # [M, N, T]
+    if eta is None:
+        eta = temperatures(cost_to_go, kl)
     S = cost_to_go - cost_to_go.amin(-2, keepdim=True)
     w = _weights(S, eta)  # [M, N, T]
     feed_forward = U - (sampling.K.unsqueeze(1) @ X.unsqueeze(-1)).squeeze(-1)  # [M, N, T, dU]
@@ -125,3 +144,83 @@ def pi2_update(
     gains = LinearGaussianGains.from_covariance(sampling.K, k, cov)
     expected = (w[..., 0] * cost_to_go[..., 0]).sum(-1)
     return PI2Result(gains=gains, eta=eta, kl=_kl_from_uniform(w), expected_cost=expected)
+
+
+def sampling_noise(sampling: LinearGaussianGains, X: torch.Tensor, U: torch.Tensor) -> torch.Tensor:
+    """The standard normal draws ``[M, N, T, dU]`` behind actions ``U`` taken in states ``X``
+    by the controllers ``sampling``: ``chol^-1 (u - K x - k)``."""
+    deviation = U.to(torch.float64) - sampling.mean_actions(X)
+    chol = sampling.chol.unsqueeze(1).expand(*deviation.shape[:3], -1, -1)
+    return torch.linalg.solve_triangular(chol, deviation.unsqueeze(-1), upper=False).squeeze(-1)
+
+
+def model_costs(
+    gains: LinearGaussianGains,
+    dynamics: LinearGaussianDynamics,
+    cost: QuadraticCost,
+    noise: torch.Tensor,
+) -> torch.Tensor:
+    """What the model predicts each sample cost, ``[M, N, T]``: the controllers ``gains``
+    run through the linear ``dynamics`` from the initial mean with each sample's standard
+    noise ``noise [M, N, T, dU]`` (``u = K x + k + chol noise``), scored by the quadratic
+    ``cost`` (the GPS code's ``approximated_cost``).
+
+    Examples:
+        >>> import torch
+        >>> from modnet.gps.dynamics import LinearGaussianDynamics
+        >>> M, N, T = 1, 2, 3  # x' = x + u from x0 = 1, cost u^2 / 2: the model's cost is exact
+        >>> F = torch.ones(M, T, 1, 2).double()
+        >>> dynamics = LinearGaussianDynamics(F, torch.zeros(M, T, 1).double(),
+        ...     torch.zeros(M, T, 1, 1).double(), torch.ones(M, 1).double(), torch.zeros(M, 1, 1).double())
+        >>> cost = QuadraticCost(torch.tensor([[0.0, 0.0], [0.0, 1.0]]).double().expand(M, T, 2, 2),
+        ...     torch.zeros(M, T, 2).double(), torch.zeros(M, T).double())
+        >>> gains = LinearGaussianGains.from_covariance(
+        ...     -0.5 * torch.ones(M, T, 1, 1), torch.zeros(M, T, 1), torch.eye(1).expand(M, T, 1, 1))
+        >>> model_costs(gains, dynamics, cost, torch.zeros(M, N, T, 1))[0, 0].tolist()  # u = -x/2
+        [0.125, 0.03125, 0.0078125]
+    """
+    noise = noise.to(torch.float64)
+    M, N, T, _ = noise.shape
+    x = dynamics.x0mu.unsqueeze(1).expand(M, N, -1)
+    taus = []
+    for t in range(T):
+        u = (
+            (gains.K[:, t, None] @ x.unsqueeze(-1)).squeeze(-1)
+            + gains.k[:, t, None]
+            + (gains.chol[:, t, None] @ noise[:, :, t].unsqueeze(-1)).squeeze(-1)
+        )
+        tau = torch.cat([x, u], -1)
+        taus.append(tau)
+        x = (dynamics.F[:, t, None] @ tau.unsqueeze(-1)).squeeze(-1) + dynamics.f[:, t, None]
+    return cost(torch.stack(taus, 2).transpose(0, 1)).transpose(0, 1)
+
+
+def pilqr_update(
+    lqr: LinearGaussianGains,
+    sampling: LinearGaussianGains,
+    dynamics: LinearGaussianDynamics,
+    cost: QuadraticCost,
+    X: torch.Tensor,
+    U: torch.Tensor,
+    costs: torch.Tensor,
+    *,
+    kl: float = 1.0,
+    covariance_damping: float = 2.0,
+) -> PI2Result:
+    """PILQR's step: PI2 on the residual cost, around the LQR's new controllers ``lqr``.
+
+    The samples ``X``, ``U`` (costs ``costs [M, N, T]``) were drawn by ``sampling``; the
+    ``dynamics`` and ``cost`` are the model the LQR planned on. Each sample's noise is
+    replayed through ``lqr`` (``k' + chol' noise``, the GPS code's ``use_lqr_actions``) and
+    weighted by its residual cost to go, the sampled cost less :func:`model_costs` of the
+    sampling controllers, at the temperatures that put the weights of the full cost ``kl``
+    from uniform. ``K`` stays the LQR's; the covariance is the LQR's, damped by the spread.
+    """
+    noise = sampling_noise(sampling, X, U)
+    costs = costs.to(torch.float64)
+    residual = costs - model_costs(sampling, dynamics, cost, noise)
+    eta = temperatures(_cost_to_go(costs), kl)
+    replayed = lqr.mean_actions(X) + (lqr.chol.unsqueeze(1) @ noise.unsqueeze(-1)).squeeze(-1)
+    result = pi2_update(lqr, X, replayed, residual, covariance_damping=covariance_damping, eta=eta)
+    result.residual_share = residual.abs().sum(-1).mean(-1) / costs.abs().sum(-1).mean(-1)
+    return result

@@ -9,7 +9,8 @@ One :meth:`GPSTrainer.step` is one GPS iteration:
 3. **dynamics**: per-step linear-Gaussian fits with a GMM prior;
 4. **C-step**: KL-constrained LQR per world and condition, against the linearised policy
    (MDGPS) or the previous controller plus BADMM's dual terms; or, with ``c_step="pi2"``
-   (MDGPS), PI2's model-free reweighting of the samples (:mod:`modnet.gps.pi2`);
+   (MDGPS), PI2's model-free reweighting of the samples (:mod:`modnet.gps.pi2`); with
+   ``c_step="pilqr"`` (MDGPS), the LQR's step then PI2 on the cost its model misses;
 5. **S-step**: SGD on the sum over worlds of the precision-weighted regression of each
    world's composed policy onto its controllers (:class:`~modnet.gps.loss.PolicyRegressionLoss`),
    then the policy's diagonal covariance is fitted.
@@ -56,7 +57,7 @@ from modnet.gps.errors import NumericalError, check_finite
 from modnet.gps.loss import PolicyRegressionLoss
 from modnet.gps.lqr import LQRConfig, LQRResult, adapt_step_mult, kl_divergence, laplace_cost, lqr_forward
 from modnet.gps.lqr import solve_kl_constrained_lqr as c_step
-from modnet.gps.pi2 import PI2Result, pi2_update
+from modnet.gps.pi2 import PI2Result, pi2_update, pilqr_update
 from modnet.gps.sampling import POLICY_KEYS, STATE_KEYS, Samples, WorldSampler, state_of
 from modnet.modules import PixelEncoder
 from modnet.specs import TORQUE_LIMIT
@@ -64,7 +65,8 @@ from modnet.worlds import CONDITION_SETS, NUM_FIXED_CONDITIONS
 
 #: where an iteration's time goes (``GPSTrainer.timings``): sampling the worlds, expanding the
 #: cost, fitting dynamics and policy linearisations, the C-step ("lqr", or PI2 with
-#: ``c_step="pi2"``), the policy's forward passes over the samples and the S-step's SGD
+#: ``c_step="pi2"``, or both with ``"pilqr"``), the policy's forward passes over the samples
+#: and the S-step's SGD
 PHASES = ("sampling", "cost", "dynamics", "lqr", "policy", "s_step")
 
 
@@ -75,7 +77,7 @@ PIXEL_ROWS_PER_PASS = 32
 
 
 POLICY_LINEARIZATIONS = ("regression", "jacobian")
-C_STEPS = ("lqr", "pi2")
+C_STEPS = ("lqr", "pi2", "pilqr")
 
 
 @dataclass
@@ -154,11 +156,13 @@ class GPSConfig:
     #: the C-step: "lqr", the KL-constrained LQR on the dynamics fitted to the samples (the
     #: paper's), or "pi2", which reweights each condition's samples by their cost to go within
     #: a KL bound of the distribution that drew them, and needs no model (the GPS code's
-    #: PIGPS; :mod:`modnet.gps.pi2`). PI2 is an MDGPS C-step (``algo="mdgps"``): it stays near
-    #: the controllers that sampled, or, with ``sample_on_policy``, near the policy itself.
-    #: Off by default (RESULTS, "a model-free C-step")
-    c_step: Literal["lqr", "pi2"] = "lqr"
-    #: PI2: the KL from uniform of each step's sample weights (the GPS code's ``kl_threshold``;
+    #: PIGPS; :mod:`modnet.gps.pi2`), or "pilqr", the LQR's step followed by PI2 on the
+    #: cost its model does not explain (the GPS code's MDGPS-PILQR). Both are MDGPS C-steps
+    #: (``algo="mdgps"``); PI2 stays near the controllers that sampled, or, with
+    #: ``sample_on_policy``, near the policy itself. Off by default (RESULTS, "a model-free
+    #: C-step", "PILQR")
+    c_step: Literal["lqr", "pi2", "pilqr"] = "lqr"
+    #: PI2 and PILQR: the KL from uniform of each step's sample weights (the GPS code's ``kl_threshold``;
     #: at most log N, all weight on the best sample)
     pi2_kl: float = 1.0
     #: PI2: the covariance is damped towards the old one by this power (the GPS code's
@@ -187,10 +191,10 @@ class GPSConfig:
             )
         if self.c_step not in C_STEPS:
             raise ValueError(f"gps.c_step must be one of {', '.join(C_STEPS)}, got {self.c_step!r}")
-        if self.c_step == "pi2" and self.algo != "mdgps":
+        if self.c_step != "lqr" and self.algo != "mdgps":
             raise ValueError(
-                "gps.c_step=pi2 is an MDGPS C-step (BADMM's adds dual terms it cannot weigh): "
-                "use algo=mdgps, or gps.c_step=lqr"
+                f"gps.c_step={self.c_step} is an MDGPS C-step (BADMM's adds dual terms PI2 cannot "
+                "weigh): use algo=mdgps, or gps.c_step=lqr"
             )
         if not (self.pi2_kl > 0 and self.pi2_covariance_damping > 0):
             raise ValueError(
@@ -221,6 +225,11 @@ class GPSConfig:
         if not self.scenes_per_world:
             return self.condition_seed
         return self.condition_seed << 32 | zlib.crc32(f"{robot}/{task}".encode())
+
+    @property
+    def fits_model(self) -> bool:
+        """Whether the C-step plans on fitted dynamics and a quadratic cost (all but PI2)."""
+        return self.c_step != "pi2"
 
     def lqr(self) -> LQRConfig:
         return LQRConfig(
@@ -428,7 +437,7 @@ class GPSTrainer:
 
     def _sample_and_fit(self, state: WorldState, policy=None) -> None:
         """Sample the world (with its controllers unless ``policy`` is given), and for the LQR
-        expand the cost and fit the dynamics (PI2 needs neither: a fifth of its iteration)."""
+        PILQR expand the cost and fit the dynamics (PI2 needs neither: a fifth of its iteration)."""
         c, world = self.config, state.sampler.world
         with self._timed("sampling"):
             self.bank.eval()  # no dropout when a composed policy acts
@@ -446,12 +455,12 @@ class GPSTrainer:
                 state.sampled_costs = world.state_cost(samples.X, samples.U, c.shaping) * weights
                 sampled = state.sampled_costs.sum(-1)
             cost = None
-            if c.c_step == "lqr":
+            if c.fits_model:
                 task_cost = lambda x, u: world.state_cost(x, u, c.shaping)  # noqa: E731
                 cost = expand_cost(task_cost, samples.X, samples.U, weights)
                 check_finite("cost expansion", cost.C, world=state.name, iteration=self.iteration)
         dynamics = None
-        if c.c_step == "lqr":
+        if c.fits_model:
             with self._timed("dynamics"):
                 self._update_dynamics_prior(state, samples)
                 dynamics = fit_dynamics(
@@ -496,7 +505,7 @@ class GPSTrainer:
         ``state.policy`` is None.
         """
         as_applied = self._samples_policy()
-        linearise = as_applied or self.config.c_step == "lqr"
+        linearise = as_applied or self.config.c_step != "pi2"
         with self._timed("policy"):
             self.bank.eval()
             if self.config.policy_linearization == "jacobian" and linearise:
@@ -659,6 +668,29 @@ class GPSTrainer:
         check_finite("PI2 feed-forward", result.gains.k, world=state.name, iteration=self.iteration)
         self._adopt(state, result)
 
+    def _pilqr_step(self, state: WorldState) -> None:
+        """PILQR's correction of the LQR's new controllers: PI2 on the residual cost, the
+        samples' cost less what the fitted model predicts for their noise."""
+        c = self.config
+        with self._timed("lqr"):
+            try:
+                result = pilqr_update(
+                    state.controller.gains,
+                    state.current.gains,
+                    state.current.dynamics,
+                    state.current.cost,
+                    state.samples.X,
+                    state.samples.U,
+                    state.sampled_costs,
+                    kl=c.pi2_kl,
+                    covariance_damping=c.pi2_covariance_damping,
+                )
+            except NumericalError as err:
+                raise err.with_context(world=state.name, iteration=self.iteration) from err
+        check_finite("PILQR feed-forward", result.gains.k, world=state.name, iteration=self.iteration)
+        state.controller.set_gains(result.gains)
+        state.diagnostics["residual_share"] = float(result.residual_share.mean())
+
     def _mdgps_update(self, states: Sequence[WorldState], outputs_ready: bool = False) -> None:
         """Mirror-descent GPS: C-step in a KL trust region around the linearised policy
         (computed here unless ``outputs_ready``: the policy is unchanged since it was)."""
@@ -670,6 +702,8 @@ class GPSTrainer:
                 continue
             self._adapt_step(state)
             self._c_step(state, state.current.cost, state.policy)
+            if self.config.c_step == "pilqr":
+                self._pilqr_step(state)
         self._s_step(self.config.sgd_steps, {s.name: self._controller_targets(s) for s in states})
 
     def _badmm_update(self, states: Sequence[WorldState], outputs_ready: bool = False) -> None:
