@@ -187,3 +187,15 @@ def test_pilqr_moves_the_lqrs_controllers_by_the_cost_the_model_misses():
     step = result.gains.k - sampling.k
     assert bool((step[..., 0] < 0).all()), step
     assert float(step[..., 1].abs().mean()) < 0.2 * float(step[..., 0].abs().mean()), step
+
+
+def test_a_residual_that_spreads_far_more_than_the_cost_keeps_its_weights_within_the_bound():
+    """The model's errors dwarf the cost's spread: at the full cost's temperatures the weights
+    would fall on one sample and the covariance collapse; the residual's own bound holds them."""
+    world, (M, N, T, dU) = LinearWorld(), (2, 20, 5, 2)
+    sampling = gaussian(M=M, T=T, variance=0.5)
+    X, U, costs = world.run(sampling, antithetic_noise(M, N, T, dU))
+    missed = 1e4 * U[..., 0]
+    result = pilqr_update(sampling, sampling, world.dynamics, world.cost, X, U, costs + missed, kl=1.0)
+    assert float(result.kl.max()) <= 1.0 + 1e-6
+    assert bool((result.gains.cov.diagonal(dim1=-2, dim2=-1) > 1e-3).all())

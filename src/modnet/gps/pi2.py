@@ -214,12 +214,16 @@ def pilqr_update(
     replayed through ``lqr`` (``k' + chol' noise``, the GPS code's ``use_lqr_actions``) and
     weighted by its residual cost to go, the sampled cost less :func:`model_costs` of the
     sampling controllers, at the temperatures that put the weights of the full cost ``kl``
-    from uniform. ``K`` stays the LQR's; the covariance is the LQR's, damped by the spread.
+    from uniform (the GPS code's), raised where the residual's weights would be farther than
+    ``kl`` from uniform: where the model misses more than the cost spreads, the weights would
+    otherwise fall on one sample and the covariance collapse (on push, at iteration 16; the
+    GPS code raises the temperature only until the covariance factorises). ``K`` stays the
+    LQR's; the covariance is the LQR's, damped by the spread.
     """
     noise = sampling_noise(sampling, X, U)
     costs = costs.to(torch.float64)
     residual = costs - model_costs(sampling, dynamics, cost, noise)
-    eta = temperatures(_cost_to_go(costs), kl)
+    eta = torch.maximum(temperatures(_cost_to_go(costs), kl), temperatures(_cost_to_go(residual), kl))
     replayed = lqr.mean_actions(X) + (lqr.chol.unsqueeze(1) @ noise.unsqueeze(-1)).squeeze(-1)
     result = pi2_update(lqr, X, replayed, residual, covariance_damping=covariance_damping, eta=eta)
     result.residual_share = residual.abs().sum(-1).mean(-1) / costs.abs().sum(-1).mean(-1)
