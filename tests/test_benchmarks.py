@@ -43,11 +43,14 @@ def test_lqr_benchmark_reports_a_ratio_against_numpy():
 
 def test_pi2_benchmark_agrees_with_the_gps_codes_dual_minimised_step_by_step():
     """The bisection puts the weights at the KL bound, which is where scipy's minimum of REPS's
-    dual puts them (its derivative is the bound less the weights' KL)."""
+    dual puts them (its derivative is the bound less the weights' KL); PILQR's batched model
+    costs are the GPS code's per-sample loop's."""
     figures = last_json("pi2.py", "--conditions", "2", "--repeats", "1")
     assert figures["max_kl_from_bound"] < 1e-9 and figures["max_rel_diff_eta"] < 1e-4
     assert figures["max_abs_diff_k"] < 1e-4 and figures["max_rel_diff_cov"] < 1e-4
     assert figures["speedup_loop_over_batched"] > 0
+    assert figures["max_rel_diff_model_costs"] < 1e-12
+    assert figures["speedup_model_costs_loop_over_batched"] > 0 and figures["pilqr_over_pi2"] > 0
 
 
 def test_gps_iteration_benchmark_times_the_grid_a_run_trains_from_images():
