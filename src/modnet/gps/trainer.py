@@ -650,46 +650,28 @@ class GPSTrainer:
         )
 
     def _pi2_step(self, state: WorldState) -> None:
-        """PI2 on this iteration's samples, around the distribution that drew them (the
-        controllers, or the policy's linearisation when it sampled)."""
+        """PI2 on this iteration's samples: around the distribution that drew them (the
+        controllers, or the policy's linearisation when it sampled); or, with PILQR, around
+        the LQR's new controllers, on the samples' cost less what the fitted model predicts
+        for their noise (the LQR's figures stay, the share of the cost the model misses is added)."""
         c = self.config
+        samples = (state.samples.X, state.samples.U, state.sampled_costs)
+        options = dict(kl=c.pi2_kl, covariance_damping=c.pi2_covariance_damping)
         with self._timed("lqr"):
             try:
-                result = pi2_update(
-                    state.current.gains,
-                    state.samples.X,
-                    state.samples.U,
-                    state.sampled_costs,
-                    kl=c.pi2_kl,
-                    covariance_damping=c.pi2_covariance_damping,
-                )
+                if c.c_step == "pilqr":
+                    model = (state.current.gains, state.current.dynamics, state.current.cost)
+                    result = pilqr_update(state.controller.gains, *model, *samples, **options)
+                else:
+                    result = pi2_update(state.current.gains, *samples, **options)
             except NumericalError as err:  # a covariance that is not positive definite
                 raise err.with_context(world=state.name, iteration=self.iteration) from err
-        check_finite("PI2 feed-forward", result.gains.k, world=state.name, iteration=self.iteration)
-        self._adopt(state, result)
-
-    def _pilqr_step(self, state: WorldState) -> None:
-        """PILQR's correction of the LQR's new controllers: PI2 on the residual cost, the
-        samples' cost less what the fitted model predicts for their noise."""
-        c = self.config
-        with self._timed("lqr"):
-            try:
-                result = pilqr_update(
-                    state.controller.gains,
-                    state.current.gains,
-                    state.current.dynamics,
-                    state.current.cost,
-                    state.samples.X,
-                    state.samples.U,
-                    state.sampled_costs,
-                    kl=c.pi2_kl,
-                    covariance_damping=c.pi2_covariance_damping,
-                )
-            except NumericalError as err:
-                raise err.with_context(world=state.name, iteration=self.iteration) from err
-        check_finite("PILQR feed-forward", result.gains.k, world=state.name, iteration=self.iteration)
-        state.controller.set_gains(result.gains)
-        state.diagnostics["residual_share"] = float(result.residual_share.mean())
+        check_finite(f"{c.c_step} feed-forward", result.gains.k, world=state.name, iteration=self.iteration)
+        if c.c_step == "pilqr":
+            state.controller.set_gains(result.gains)
+            state.diagnostics["residual_share"] = float(result.residual_share.mean())
+        else:
+            self._adopt(state, result)
 
     def _mdgps_update(self, states: Sequence[WorldState], outputs_ready: bool = False) -> None:
         """Mirror-descent GPS: C-step in a KL trust region around the linearised policy
@@ -703,7 +685,7 @@ class GPSTrainer:
             self._adapt_step(state)
             self._c_step(state, state.current.cost, state.policy)
             if self.config.c_step == "pilqr":
-                self._pilqr_step(state)
+                self._pi2_step(state)
         self._s_step(self.config.sgd_steps, {s.name: self._controller_targets(s) for s in states})
 
     def _badmm_update(self, states: Sequence[WorldState], outputs_ready: bool = False) -> None:
