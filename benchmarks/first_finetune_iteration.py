@@ -11,6 +11,7 @@ on a finished run's bank, as ``run.py finetune=true`` does, and rolls out with m
 - ``network_before``: the network as the bank holds it;
 - ``linearisation``: its linearisation, the controllers' start and the first C-step's centre;
 - ``first_c_step``: the controllers after the first C-step, before any S-step;
+- ``first_lqr_part`` (PILQR only): the same before PI2's correction, the LQR's step alone;
 - ``last_c_step``: the controllers the iteration ends with;
 - ``network_after``: the network after the iteration's S-steps;
 - ``untouched``: the distance each condition starts from.
@@ -20,12 +21,15 @@ point of the run's fine-tuning curve (``run_curve_1``): the two agree when this 
 run's iteration.  ``--kl-step`` repeats everything at each KL budget (the run's
 ``eval.finetune_kl_step``, else ``gps.kl_step``, when not given). ``--policy-linearization``
 linearises the network by regression or by its Jacobian (``gps.policy_linearization``; the
-run's fine-tuning choice when not given).
+run's fine-tuning choice when not given). ``--algo`` and ``--c-step`` set fine-tuning's
+algorithm and C-step (``lqr``, ``pi2`` or ``pilqr``; the last two with ``--algo mdgps``), by
+default the run's.
 
 Prints a line per KL budget, then ONE JSON object on its last line.
 
     python benchmarks/first_finetune_iteration.py outputs/manipulation --kl-step 1.0 0.2
     python benchmarks/first_finetune_iteration.py outputs/manipulation --policy-linearization jacobian
+    python benchmarks/first_finetune_iteration.py outputs/manipulation --algo mdgps --c-step pilqr
 """
 
 from __future__ import annotations
@@ -43,7 +47,7 @@ from modnet.config import RunConfig, saved_run
 from modnet.envs import WorldEnv
 from modnet.evaluate import _start_bank, evaluation_env, rollout, score, start_config, training_env
 from modnet.gps.controller import LinearGaussianGains
-from modnet.gps.trainer import POLICY_LINEARIZATIONS, GPSTrainer
+from modnet.gps.trainer import C_STEPS, POLICY_LINEARIZATIONS, GPSTrainer
 
 TRANSFERRED = ("composed", "wrong_task")
 
@@ -64,26 +68,31 @@ def controller_distance(scenes: WorldEnv, trainer: GPSTrainer, gains: LinearGaus
         controller.set_gains(kept)
 
 
-def first_iteration(
-    run_dir: Path, run: RunConfig, results: dict, start: str, kl_step: float, linearization: str
-) -> dict:
+def first_iteration(run_dir: Path, run: RunConfig, results: dict, start: str, **options) -> dict:
+    """The start's first fine-tuning iteration, with ``options`` replacing the run's
+    fine-tuning GPS options (``kl_step``, ``policy_linearization``, ``algo``, ``c_step``)."""
     robot, task = results["holdout"].split("/")
     wrong_task = results["methods"]["wrong_task"]["task"] if "wrong_task" in results["methods"] else None
-    options = dict(kl_step=kl_step, policy_linearization=linearization)
     config = start_config(dataclasses.replace(run.finetune_gps_config(), **options), start)
     bank = _start_bank(run_dir / "bank", start, robot, task, wrong_task, config.seed)
     trainer = GPSTrainer(bank, [(robot, task)], config)
     scenes = training_env(robot, task, config, horizon=results["horizon"])
     before = score(bank, robot, task, scenes)
 
-    c_steps: list[LinearGaussianGains] = []
-    c_step = trainer._c_step
+    c_steps: list[LinearGaussianGains] = []  # each C-step's controllers
+    lqr_parts: list[LinearGaussianGains] = []  # PILQR: each LQR step before PI2's correction
 
-    def recording_c_step(state, *args, **kwargs):  # keep each C-step's controllers
-        c_step(state, *args, **kwargs)
-        c_steps.append(copy.deepcopy(state.controller.gains))
+    def recording(step, corrects_lqr: bool):
+        def recorded(state, *args, **kwargs):
+            step(state, *args, **kwargs)
+            if corrects_lqr:
+                lqr_parts.append(c_steps.pop())
+            c_steps.append(copy.deepcopy(state.controller.gains))
 
-    trainer._c_step = recording_c_step
+        return recorded
+
+    trainer._c_step = recording(trainer._c_step, corrects_lqr=False)
+    trainer._pi2_step = recording(trainer._pi2_step, corrects_lqr=config.c_step == "pilqr")
     (diagnostics,) = trainer.step().values()
     (state,) = trainer.states.values()
     after, _ = rollout(bank, robot, task, scenes)
@@ -92,6 +101,7 @@ def first_iteration(
         "network_before": before.mean,
         "linearisation": controller_distance(scenes, trainer, state.current.gains),
         "first_c_step": controller_distance(scenes, trainer, c_steps[0]),
+        **({"first_lqr_part": controller_distance(scenes, trainer, lqr_parts[0])} if lqr_parts else {}),
         "last_c_step": controller_distance(scenes, trainer, c_steps[-1]),
         "network_after": float(scenes.final_distance(after).mean()),
         "untouched": float(scenes.start_distance(after).mean()),
@@ -114,6 +124,8 @@ def main() -> None:
         default=None,
         help="how the network is linearised (default: the run's fine-tuning choice)",
     )
+    parser.add_argument("--algo", choices=["badmm", "mdgps"], default=None, help="default: the run's")
+    parser.add_argument("--c-step", choices=C_STEPS, default=None, help="default: the run's")
     args = parser.parse_args()
 
     results = finished_run(parser, args.run_dir, (*FINISHED, ".hydra/config.yaml"))
@@ -122,9 +134,18 @@ def main() -> None:
     run = saved_run(args.run_dir)
     torch.set_num_threads(run.threads)
     kl_steps = args.kl_step or [run.finetune_gps_config().kl_step]
-    linearization = args.policy_linearization or run.finetune_gps_config().policy_linearization
+    tuned = run.finetune_gps_config()
+    options = dict(
+        policy_linearization=args.policy_linearization or tuned.policy_linearization,
+        algo=args.algo or tuned.algo,
+        c_step=args.c_step or tuned.c_step,
+    )
     if any(not k > 0 for k in kl_steps):
         parser.error(f"--kl-step must be positive, got {kl_steps}")
+    try:
+        dataclasses.replace(tuned, **options)
+    except ValueError as err:  # e.g. PI2 under BADMM, refused before any work
+        parser.error(str(err))
 
     curve = results.get("finetune", {}).get(args.start)
     out = {
@@ -133,11 +154,11 @@ def main() -> None:
         "start": args.start,
         "run_curve_1": curve[1] if curve and len(curve) > 1 else None,
         "run_kl_step": run.finetune_gps_config().kl_step,
-        "policy_linearization": linearization,
+        **options,
         "by_kl_step": {},
     }
     for kl_step in kl_steps:
-        figures = first_iteration(args.run_dir, run, results, args.start, kl_step, linearization)
+        figures = first_iteration(args.run_dir, run, results, args.start, kl_step=kl_step, **options)
         out["by_kl_step"][str(kl_step)] = figures
         print(f"kl_step {kl_step:g}: " + ", ".join(f"{k} {v:g}" for k, v in figures.items()), flush=True)
     print(json.dumps(out))

@@ -407,6 +407,17 @@ def test_first_finetune_iteration_reruns_the_runs_first_iteration_without_noise(
     assert exact["linearisation"] != at_run["linearisation"]  # linearised another way
 
 
+def test_first_finetune_iteration_separates_pilqrs_lqr_step_from_pi2s_correction(tiny_run):
+    run_dir, _, _ = tiny_run
+    out = last_json("first_finetune_iteration.py", str(run_dir), "--algo", "mdgps", "--c-step", "pilqr")
+    figures = out["by_kl_step"]["1.0"]
+    assert (out["algo"], out["c_step"]) == ("mdgps", "pilqr")
+    assert figures["first_lqr_part"] != figures["first_c_step"]  # PI2 moved the LQR's controllers
+    assert figures["first_c_step"] == figures["last_c_step"]  # MDGPS: one C-step per iteration
+    done = run_script(BENCHMARKS / "first_finetune_iteration.py", str(run_dir), "--c-step", "pi2")
+    assert done.returncode != 0 and "use algo=mdgps" in done.stderr  # the run's BADMM, refused
+
+
 @pytest.mark.parametrize(
     "script, missing",
     [
