@@ -23,13 +23,17 @@ run's iteration.  ``--kl-step`` repeats everything at each KL budget (the run's
 linearises the network by regression or by its Jacobian (``gps.policy_linearization``; the
 run's fine-tuning choice when not given). ``--algo`` and ``--c-step`` set fine-tuning's
 algorithm and C-step (``lqr``, ``pi2`` or ``pilqr``; the last two with ``--algo mdgps``), by
-default the run's.
+default the run's. ``--s-step-onto linearisation`` is a control for the S-step: after each C-step
+(recorded as usual) the controllers are put back to the network's linearisation, so the S-step
+regresses onto what the network already did, and ``network_after`` says whether the S-step
+alone keeps it.
 
 Prints a line per KL budget, then ONE JSON object on its last line.
 
     python benchmarks/first_finetune_iteration.py outputs/manipulation --kl-step 1.0 0.2
     python benchmarks/first_finetune_iteration.py outputs/manipulation --policy-linearization jacobian
     python benchmarks/first_finetune_iteration.py outputs/manipulation --algo mdgps --c-step pilqr
+    python benchmarks/first_finetune_iteration.py outputs/manipulation --s-step-onto linearisation
 """
 
 from __future__ import annotations
@@ -68,9 +72,13 @@ def controller_distance(scenes: WorldEnv, trainer: GPSTrainer, gains: LinearGaus
         controller.set_gains(kept)
 
 
-def first_iteration(run_dir: Path, run: RunConfig, results: dict, start: str, **options) -> dict:
+def first_iteration(
+    run_dir: Path, run: RunConfig, results: dict, start: str, s_step_onto: str = "c_step", **options
+) -> dict:
     """The start's first fine-tuning iteration, with ``options`` replacing the run's
-    fine-tuning GPS options (``kl_step``, ``policy_linearization``, ``algo``, ``c_step``)."""
+    fine-tuning GPS options (``kl_step``, ``policy_linearization``, ``algo``, ``c_step``), and
+    the S-step regressing onto the C-step's controllers or (``s_step_onto="linearisation"``)
+    onto the network's linearisation."""
     robot, task = results["holdout"].split("/")
     wrong_task = results["methods"]["wrong_task"]["task"] if "wrong_task" in results["methods"] else None
     config = start_config(dataclasses.replace(run.finetune_gps_config(), **options), start)
@@ -88,6 +96,8 @@ def first_iteration(run_dir: Path, run: RunConfig, results: dict, start: str, **
             if corrects_lqr:
                 lqr_parts.append(c_steps.pop())
             c_steps.append(copy.deepcopy(state.controller.gains))
+            if s_step_onto == "linearisation":
+                state.controller.set_gains(state.current.gains)
 
         return recorded
 
@@ -126,6 +136,13 @@ def main() -> None:
     )
     parser.add_argument("--algo", choices=["badmm", "mdgps"], default=None, help="default: the run's")
     parser.add_argument("--c-step", choices=C_STEPS, default=None, help="default: the run's")
+    parser.add_argument(
+        "--s-step-onto",
+        choices=["c_step", "linearisation"],
+        default="c_step",
+        help="what the S-step regresses onto: the C-step's controllers, or (a control) the network's "
+        "linearisation",
+    )
     args = parser.parse_args()
 
     results = finished_run(parser, args.run_dir, (*FINISHED, ".hydra/config.yaml"))
@@ -155,10 +172,13 @@ def main() -> None:
         "run_curve_1": curve[1] if curve and len(curve) > 1 else None,
         "run_kl_step": run.finetune_gps_config().kl_step,
         **options,
+        "s_step_onto": args.s_step_onto,
         "by_kl_step": {},
     }
     for kl_step in kl_steps:
-        figures = first_iteration(args.run_dir, run, results, args.start, kl_step=kl_step, **options)
+        figures = first_iteration(
+            args.run_dir, run, results, args.start, s_step_onto=args.s_step_onto, kl_step=kl_step, **options
+        )
         out["by_kl_step"][str(kl_step)] = figures
         print(f"kl_step {kl_step:g}: " + ", ".join(f"{k} {v:g}" for k, v in figures.items()), flush=True)
     print(json.dumps(out))

@@ -418,6 +418,19 @@ def test_first_finetune_iteration_separates_pilqrs_lqr_step_from_pi2s_correction
     assert done.returncode != 0 and "use algo=mdgps" in done.stderr  # the run's BADMM, refused
 
 
+def test_first_finetune_iteration_can_regress_onto_the_networks_own_linearisation(tiny_run):
+    """The control puts the controllers back after each C-step: the C-steps are those of the
+    plain rerun, and only what the S-step regresses onto, so the network after, changes."""
+    run_dir, _, _ = tiny_run
+    plain = last_json("first_finetune_iteration.py", str(run_dir))["by_kl_step"]["1.0"]
+    out = last_json("first_finetune_iteration.py", str(run_dir), "--s-step-onto", "linearisation")
+    control = out["by_kl_step"]["1.0"]
+    assert out["s_step_onto"] == "linearisation"
+    assert control["first_c_step"] == plain["first_c_step"]
+    assert control["linearisation"] == plain["linearisation"]
+    assert control["network_after"] != plain["network_after"]
+
+
 @pytest.mark.parametrize(
     "script, missing",
     [
