@@ -165,7 +165,7 @@ class GPSConfig:
     #: PI2 and PILQR: the KL from uniform of each step's sample weights (the GPS code's ``kl_threshold``;
     #: at most log N, all weight on the best sample)
     pi2_kl: float = 1.0
-    #: PI2: the covariance is damped towards the old one by this power (the GPS code's
+    #: PI2 and PILQR: the covariance is damped towards the old one by this power (the GPS code's
     #: ``covariance_damping``; larger keeps exploring longer)
     pi2_covariance_damping: float = 2.0
     seed: int = 0
@@ -436,7 +436,7 @@ class GPSTrainer:
         return self.bank.compose(*self.bank.world(state.name))
 
     def _sample_and_fit(self, state: WorldState, policy=None) -> None:
-        """Sample the world (with its controllers unless ``policy`` is given), and for the LQR
+        """Sample the world (with its controllers unless ``policy`` is given), and for the LQR and
         PILQR expand the cost and fit the dynamics (PI2 needs neither: a fifth of its iteration)."""
         c, world = self.config, state.sampler.world
         with self._timed("sampling"):
