@@ -150,8 +150,8 @@ def main() -> None:
         parser.error(f"{args.run_dir}'s bank has no wrong task module; valid starts: composed")
     run = saved_run(args.run_dir)
     torch.set_num_threads(run.threads)
-    kl_steps = args.kl_step or [run.finetune_gps_config().kl_step]
     tuned = run.finetune_gps_config()
+    kl_steps = args.kl_step or [tuned.kl_step]
     options = dict(
         policy_linearization=args.policy_linearization or tuned.policy_linearization,
         algo=args.algo or tuned.algo,
@@ -170,7 +170,7 @@ def main() -> None:
         "holdout": results["holdout"],
         "start": args.start,
         "run_curve_1": curve[1] if curve and len(curve) > 1 else None,
-        "run_kl_step": run.finetune_gps_config().kl_step,
+        "run_kl_step": tuned.kl_step,
         **options,
         "s_step_onto": args.s_step_onto,
         "by_kl_step": {},
