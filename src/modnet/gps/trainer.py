@@ -500,12 +500,13 @@ class GPSTrainer:
         and the controllers must start from, and the C-step stay near, what it does in the
         world.  Otherwise the network imitates the controllers, as in training.
 
-        PI2 (``c_step="pi2"``) needs the linearisation only where the policy sampled: it
-        reweights around what drew the samples. Elsewhere only the means are computed, and
-        ``state.policy`` is None.
+        The LQR, alone or in PILQR, plans within a trust region around the linearisation, so it is
+        fitted wherever a model is (``GPSConfig.fits_model``). PI2 (``c_step="pi2"``) needs it
+        only where the policy sampled: it reweights around what drew the samples. Elsewhere
+        only the means are computed, and ``state.policy`` is None.
         """
         as_applied = self._samples_policy()
-        linearise = as_applied or self.config.c_step != "pi2"
+        linearise = as_applied or self.config.fits_model
         with self._timed("policy"):
             self.bank.eval()
             if self.config.policy_linearization == "jacobian" and linearise:
