@@ -16,6 +16,11 @@ on a finished run's bank, as ``run.py finetune=true`` does, and rolls out with m
 - ``network_after``: the network after the iteration's S-steps;
 - ``untouched``: the distance each condition starts from.
 
+Where the C-step fits a model (the LQR and PILQR), ``linearisation_predicted`` and
+``first_c_step_predicted`` are where that model (the dynamics fitted to the iteration's samples)
+says the same controllers end: the mean path of the linear dynamics, scored like the rollouts.
+Beside the real figures they show what the C-step expected of its step and what it got.
+
 ``network_after_test`` is the network after the iteration at the test positions, the second
 point of the run's fine-tuning curve (``run_curve_1``): the two agree when this reran the
 run's iteration.  ``--kl-step`` repeats everything at each KL budget (the run's
@@ -48,9 +53,10 @@ import torch
 from _run_dir import FINISHED, finished_run
 
 from modnet.config import RunConfig, saved_run
-from modnet.envs import WorldEnv
+from modnet.envs import FINAL_STEPS, WorldEnv
 from modnet.evaluate import _start_bank, evaluation_env, rollout, score, start_config, training_env
 from modnet.gps.controller import LinearGaussianGains
+from modnet.gps.lqr import lqr_forward
 from modnet.gps.trainer import C_STEPS, POLICY_LINEARIZATIONS, GPSTrainer
 
 TRANSFERRED = ("composed", "wrong_task")
@@ -70,6 +76,17 @@ def controller_distance(scenes: WorldEnv, trainer: GPSTrainer, gains: LinearGaus
     finally:
         controller.deterministic = None
         controller.set_gains(kept)
+
+
+def predicted_distance(trainer: GPSTrainer, gains: LinearGaussianGains) -> float:
+    """Mean final distance the iteration's fitted dynamics predict for ``gains``: their mean
+    path from each condition's fitted initial state, scored as :func:`controller_distance`
+    scores a rollout (the task's distance over the last steps)."""
+    (state,) = trainer.states.values()
+    world = state.sampler.world
+    mean = lqr_forward(gains, state.current.dynamics).mu  # [M, T, dX + dU]
+    task_state = mean[..., world.robot.state_dim : gains.state_dim]
+    return float(world.task.distance(task_state)[:, -FINAL_STEPS:].mean(-1).mean())
 
 
 def first_iteration(
@@ -117,6 +134,9 @@ def first_iteration(
         "untouched": float(scenes.start_distance(after).mean()),
         "network_after_test": score(bank, robot, task, test_positions).mean,
     }
+    if config.fits_model:
+        distances["linearisation_predicted"] = predicted_distance(trainer, state.current.gains)
+        distances["first_c_step_predicted"] = predicted_distance(trainer, c_steps[0])
     out = {name: round(d, 4) for name, d in distances.items()}
     out["sampled"] = round(float(diagnostics["distance"]), 4)
     out["kl"] = round(float(diagnostics["kl"]), 2)

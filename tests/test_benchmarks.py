@@ -397,6 +397,13 @@ def test_first_finetune_iteration_reruns_the_runs_first_iteration_without_noise(
     assert small["network_before"] == at_run["network_before"]  # the same bank, noise-free
     assert small["linearisation"] == at_run["linearisation"]  # and the same first samples
     assert small["kl"] < at_run["kl"]  # the C-steps kept nearer the network
+    # the fitted model's view of the same controllers: the linearisation is the LQR's centre,
+    # and a wider trust region lets it promise more
+    assert small["linearisation_predicted"] == at_run["linearisation_predicted"]
+    promised = {
+        kl: f["linearisation_predicted"] - f["first_c_step_predicted"] for kl, f in out["by_kl_step"].items()
+    }
+    assert promised["1.0"] > promised["0.05"] > 0, promised
     names = {"network_before", "linearisation", "first_c_step", "last_c_step", "network_after", "untouched"}
     assert names <= set(at_run) and all(at_run[name] >= 0 for name in names)
     assert out["policy_linearization"] == "regression"  # the run's
