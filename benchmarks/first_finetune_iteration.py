@@ -18,7 +18,8 @@ on a finished run's bank, as ``run.py finetune=true`` does, and rolls out with m
 
 Where the C-step fits a model (the LQR and PILQR), ``linearisation_predicted`` and
 ``first_c_step_predicted`` are where that model (the dynamics fitted to the iteration's samples)
-says the same controllers end: the mean path of the linear dynamics, scored like the rollouts.
+says the same controllers end: the mean path of the linear dynamics, scored like the rollouts
+(over a window one step earlier: the model ends at the last state it has a successor for).
 Beside the real figures they show what the C-step expected of its step and what it got.
 
 ``network_after_test`` is the network after the iteration at the test positions, the second
@@ -80,8 +81,9 @@ def controller_distance(scenes: WorldEnv, trainer: GPSTrainer, gains: LinearGaus
 
 def predicted_distance(trainer: GPSTrainer, gains: LinearGaussianGains) -> float:
     """Mean final distance the iteration's fitted dynamics predict for ``gains``: their mean
-    path from each condition's fitted initial state, scored as :func:`controller_distance`
-    scores a rollout (the task's distance over the last steps)."""
+    path from each condition's fitted initial state, the task's distance averaged over its
+    last ``FINAL_STEPS`` states. The model has no successor of the last state, so its window
+    ends one step before a rollout's (:func:`controller_distance`)."""
     (state,) = trainer.states.values()
     world = state.sampler.world
     mean = lqr_forward(gains, state.current.dynamics).mu  # [M, T, dX + dU]
