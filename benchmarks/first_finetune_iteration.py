@@ -91,6 +91,16 @@ def predicted_distance(trainer: GPSTrainer, gains: LinearGaussianGains) -> float
     return float(world.task.distance(task_state)[:, -FINAL_STEPS:].mean(-1).mean())
 
 
+def start_trainer(run_dir: Path, run: RunConfig, results: dict, start: str, **options) -> GPSTrainer:
+    """The trainer ``run.py finetune=true`` fine-tunes ``start`` with (on the held-out world of the
+    finished run in ``run_dir``), with ``options`` replacing the run's fine-tuning GPS options."""
+    robot, task = results["holdout"].split("/")
+    wrong_task = results["methods"]["wrong_task"]["task"] if "wrong_task" in results["methods"] else None
+    config = start_config(dataclasses.replace(run.finetune_gps_config(), **options), start)
+    bank = _start_bank(run_dir / "bank", start, robot, task, wrong_task, config.seed)
+    return GPSTrainer(bank, [(robot, task)], config)
+
+
 def first_iteration(
     run_dir: Path, run: RunConfig, results: dict, start: str, s_step_onto: str = "c_step", **options
 ) -> dict:
@@ -98,11 +108,8 @@ def first_iteration(
     fine-tuning GPS options (``kl_step``, ``policy_linearization``, ``algo``, ``c_step``), and
     the S-step regressing onto the C-step's controllers or (``s_step_onto="linearisation"``)
     onto the network's linearisation."""
-    robot, task = results["holdout"].split("/")
-    wrong_task = results["methods"]["wrong_task"]["task"] if "wrong_task" in results["methods"] else None
-    config = start_config(dataclasses.replace(run.finetune_gps_config(), **options), start)
-    bank = _start_bank(run_dir / "bank", start, robot, task, wrong_task, config.seed)
-    trainer = GPSTrainer(bank, [(robot, task)], config)
+    trainer = start_trainer(run_dir, run, results, start, **options)
+    bank, config, (robot, task) = trainer.bank, trainer.config, results["holdout"].split("/")
     scenes = training_env(robot, task, config, horizon=results["horizon"])
     before = score(bank, robot, task, scenes)
 

@@ -452,3 +452,44 @@ def test_run_directory_benchmarks_name_what_an_unfinished_run_lacks_in_one_line(
     done = run_script(BENCHMARKS / script, str(tmp_path))
     message = f"{tmp_path} is not a finished run.py run directory: {missing}"
     assert done.returncode == 2 and message in done.stderr, done.stderr
+
+
+def test_imitation_capacity_fits_what_depends_on_scene_and_time_only_when_given_them():
+    """Targets that depend on the condition and the time step alone, at one state: a network of
+    the state can only fit their mean; one given the condition and the time fits them."""
+    capacity = load_script(BENCHMARKS / "imitation_capacity.py", "imitation_capacity")
+    M, N, T = 3, 2, 8
+    condition = torch.arange(M)[:, None, None].expand(M, N, T)
+    step = torch.arange(T)[None, None, :, None].expand(M, N, T, 1)
+    phase = 2 * torch.pi * step / T + condition[..., None]
+    target = torch.cat([phase.sin(), phase.cos()], -1).reshape(-1, 2)
+    state = torch.zeros(M * N * T, 2)
+    inputs = (state[:, :1], state[:, 1:], condition.reshape(-1), step.reshape(-1, 1))
+    gaps = {}
+    for name in ("state", "state_scene_time"):
+        torch.manual_seed(0)
+        net = capacity.Regressor(name, state_dim=2, action_dim=2, conditions=M, horizon=T, hidden=(32, 32))
+        capacity.fit(net, inputs, target, steps=1500, seed=0)
+        with torch.no_grad():
+            gaps[name] = capacity.clipped_gap(net(*inputs), target)
+    assert gaps["state"] == pytest.approx(float(target.norm(dim=-1).mean()), rel=0.05)  # the mean, 0
+    assert gaps["state_scene_time"] < 0.1 * gaps["state"], gaps
+    # the share of the targets' variance between one cell's samples: none here, all in noise
+    # with zero mean in every cell
+    assert capacity.within_cell_share(target.reshape(M, N, T, 2)) == 0.0
+    noise = torch.randn(M, N, T, 2)
+    assert capacity.within_cell_share(noise - noise.mean(1, keepdim=True)) == 1.0
+
+
+def test_imitation_capacity_reruns_the_runs_fine_tuning_and_fits_its_targets(tiny_run):
+    run_dir, _, _ = tiny_run
+    args = ["--iterations", "1", "--sgd-steps", "20", "--hidden", "8"]
+    out = last_json("imitation_capacity.py", str(run_dir), *args)
+    assert out["rerun_curve"] == out["run_curve"]  # run.py's own fine-tuning, redone
+    assert set(out["networks"]) == {"network", "state", "state_time", "state_scene_time"}
+    for name, figures in out["networks"].items():
+        tested = {"distance_test"} if name != "state_scene_time" else set()  # knows no test scene
+        assert set(figures) == {"gap_fit", "gap_fresh", "gap_own", "distance"} | tested
+        assert all(v >= 0 for v in figures.values()), figures
+    assert out["networks"]["network"]["distance_test"] == out["rerun_curve"][-1]
+    assert 0 <= out["within_cell_share"] <= 1 and out["untouched"] > 0
