@@ -10,7 +10,8 @@ and the scene in a way the state does not tell apart.
 This reruns ``--iterations`` fine-tuning iterations of a start (as ``run.py finetune=true``
 does, with the run's options unless ``--c-step`` is given) on a finished run's bank, then
 takes the last iteration's samples, the S-step's own training set, and fits to the same
-targets, from scratch and without dropout, one plain network per set of inputs:
+targets (clipped to the torque limits where the run's ``gps.clip_targets`` clips them), from
+scratch and without dropout, one plain network per set of inputs:
 
 - ``state``: the state ``x`` (what the composed modules read, together);
 - ``state_time``: ``x`` and the time step ``t / T``;
@@ -31,6 +32,7 @@ after the run's S-steps:
 - ``distance_test``: where it ends at the test positions (not for ``state_scene_time``, which
   knows only the training conditions).
 
+``saturated`` is the share of the controllers' mean torques at the samples beyond the limits;
 ``within_cell_share`` is the share of the targets' variance that lies within (condition, time
 step) cells, between one cell's samples: what the controllers' feedback ``K_t`` adds to
 their feed-forward at the samples' spread of states.
@@ -223,9 +225,15 @@ def main() -> None:
     finetuned_s = time.perf_counter() - started
     (state,) = trainer.states.values()
     gains = state.controller.gains
-    training = (state.samples.obs, gains.mean_actions(state.samples.X).to(torch.float32))
+
+    def targets(X: torch.Tensor) -> torch.Tensor:  # the S-step's
+        asked = gains.mean_actions(X)
+        return (asked.clamp(-TORQUE_LIMIT, TORQUE_LIMIT) if trainer.config.clip_targets else asked).float()
+
+    training = (state.samples.obs, targets(state.samples.X))
+    asked = gains.mean_actions(state.samples.X)
     fresh_samples = state.sampler.sample(state.controller)
-    fresh = (fresh_samples.obs, gains.mean_actions(fresh_samples.X).to(torch.float32))
+    fresh = (fresh_samples.obs, targets(fresh_samples.X))
     flat = {
         part: (inputs_of(obs), target.reshape(-1, target.shape[-1]))
         for part, (obs, target) in (("fit", training), ("fresh", fresh))
@@ -276,6 +284,7 @@ def main() -> None:
         "controllers": round(controller_distance(scenes, trainer, gains), 4),
         "sampled": round(float(state.samples.distance.mean()), 4),
         "untouched": round(float(scenes.start_distance(after).mean()), 4),
+        "saturated": round(float((asked.abs() > TORQUE_LIMIT).double().mean()), 4),
         "within_cell_share": within_cell_share(training[1]),
         "target_norm": round(float(flat["fit"][1].clamp(-TORQUE_LIMIT, TORQUE_LIMIT).norm(dim=-1).mean()), 4),
         "rerun_curve": curve,
