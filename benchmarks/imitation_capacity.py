@@ -19,8 +19,9 @@ scratch and without dropout, one plain network per set of inputs:
   scene's feed-forward step by step.
 
 Each has ``--hidden`` ReLU layers (default five of 80 units: the composed pair's depth and
-width) and is fitted by Adam for ``--sgd-steps`` steps. For each, and for the bank's network
-after the run's S-steps:
+width) and is fitted by Adam for ``--sgd-steps`` steps. Beside them ``network`` is the bank's
+network after the run's S-steps, and ``network_refit`` a copy of it trained on the same way
+(dropout off, the same targets, steps and schedule). For each:
 
 - ``gap_fit``: the mean norm of its mean action less the target, both clipped to the torque
   limits, on the training set;
@@ -48,6 +49,7 @@ Prints a line per network, then ONE JSON object on its last line.
 from __future__ import annotations
 
 import argparse
+import copy
 import json
 import time
 from pathlib import Path
@@ -59,12 +61,13 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule
 from torch import nn
 
+from modnet.bank import ModuleBank
 from modnet.config import saved_run
 from modnet.envs import WorldEnv
 from modnet.evaluate import evaluating, evaluation_env, rollout, score, training_env
 from modnet.gps.controller import LinearGaussianGains
 from modnet.gps.sampling import STATE_KEYS, state_of
-from modnet.gps.trainer import C_STEPS, GPSTrainer
+from modnet.gps.trainer import C_STEPS
 from modnet.specs import TORQUE_LIMIT
 
 #: the regressors' inputs beside the state: (time step, condition)
@@ -125,20 +128,36 @@ def inputs_of(obs: TensorDictBase) -> tuple[torch.Tensor, ...]:
 
 
 def fit(net: Regressor, inputs: tuple, target: torch.Tensor, *, steps: int, seed: int) -> None:
-    """Adam on the mean squared error, minibatches of 1,024, the learning rate 1e-3 annealed to
-    zero (cosine) over ``steps``."""
+    """``net``'s normalisation from ``inputs``, then :func:`minimise` its squared error."""
     net.fit_normalization(net.features(*inputs))
+    minimise(net.parameters(), lambda rows: net(*(x[rows] for x in inputs)), target, steps=steps, seed=seed)
+
+
+def minimise(parameters, predict, target: torch.Tensor, *, steps: int, seed: int) -> None:
+    """Adam on the mean squared error of ``predict(rows)`` against ``target[rows]``, minibatches
+    of 1,024 rows, the learning rate 1e-3 annealed to zero (cosine) over ``steps``."""
     generator = torch.Generator().manual_seed(seed)
-    optimizer = torch.optim.Adam(net.parameters(), lr=1e-3)
+    optimizer = torch.optim.Adam(parameters, lr=1e-3)
     schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, max(steps, 1))
-    rows = target.shape[0]
     for _ in range(steps):
-        batch = torch.randint(rows, (min(1024, rows),), generator=generator)
-        loss = (net(*(x[batch] for x in inputs)) - target[batch]).square().sum(-1).mean()
+        rows = torch.randint(target.shape[0], (min(1024, target.shape[0]),), generator=generator)
+        loss = (predict(rows) - target[rows]).square().sum(-1).mean()
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()
         schedule.step()
+
+
+def refitted(bank: ModuleBank, world, obs: TensorDictBase, target: torch.Tensor, **schedule) -> ModuleBank:
+    """A copy of ``bank`` whose ``world`` network :func:`minimise` trains on, dropout off."""
+    bank = copy.deepcopy(bank).eval()
+    flat = obs.reshape(-1)
+
+    def predict(rows: torch.Tensor) -> torch.Tensor:
+        return bank.forward_worlds({world: flat[rows]})[world]["loc"]
+
+    minimise(bank.parameters(), predict, target, **schedule)
+    return bank
 
 
 def clipped_gap(actions: torch.Tensor, target: torch.Tensor) -> float:
@@ -179,13 +198,25 @@ def within_cell_share(target: torch.Tensor) -> float:
     return round(float(within / total), 4)
 
 
-def network_actions(trainer: GPSTrainer, obs: TensorDictBase) -> torch.Tensor:
-    """The bank's composed network's mean actions at ``obs``, flattened."""
-    (name,) = trainer.states
-    with evaluating(trainer.bank):
-        out = trainer.bank.forward_worlds({name: obs})
-    loc = out[trainer.bank.world(name)]["loc"]
+def network_actions(bank: ModuleBank, world, obs: TensorDictBase) -> torch.Tensor:
+    """``bank``'s ``world`` network's mean actions at ``obs``, flattened."""
+    with evaluating(bank):
+        loc = bank.forward_worlds({world: obs})[world]["loc"]
     return loc.reshape(-1, loc.shape[-1])
+
+
+def bank_figures(bank: ModuleBank, world, data: dict, scenes: WorldEnv, tests: WorldEnv, gains) -> dict:
+    """A bank's network's figures: its gaps on ``data`` (``{part: (obs, flat target)}``) and at
+    its own states, where it ends on ``scenes`` and on ``tests`` (the test positions)."""
+    robot, task = world
+    after, _ = rollout(bank, robot, task, scenes)
+    gaps = {f"gap_{part}": clipped_gap(network_actions(bank, world, x), t) for part, (x, t) in data.items()}
+    return {
+        **gaps,
+        "gap_own": own_gap(after, gains),
+        "distance": round(float(scenes.final_distance(after).mean()), 4),
+        "distance_test": round(score(bank, robot, task, tests).mean, 4),
+    }
 
 
 def main() -> None:
@@ -226,29 +257,23 @@ def main() -> None:
     (state,) = trainer.states.values()
     gains = state.controller.gains
 
-    def targets(X: torch.Tensor) -> torch.Tensor:  # the S-step's
-        asked = gains.mean_actions(X)
-        return (asked.clamp(-TORQUE_LIMIT, TORQUE_LIMIT) if trainer.config.clip_targets else asked).float()
+    asked = {"fit": gains.mean_actions(state.samples.X)}  # at the S-step's samples and a fresh draw
+    samples = {"fit": state.samples, "fresh": state.sampler.sample(state.controller)}
+    asked["fresh"] = gains.mean_actions(samples["fresh"].X)
+    if trainer.config.clip_targets:  # the S-step's targets
+        targets = {part: a.clamp(-TORQUE_LIMIT, TORQUE_LIMIT).float() for part, a in asked.items()}
+    else:
+        targets = {part: a.float() for part, a in asked.items()}
+    flat = {part: t.reshape(-1, gains.action_dim) for part, t in targets.items()}
 
-    training = (state.samples.obs, targets(state.samples.X))
-    asked = gains.mean_actions(state.samples.X)
-    fresh_samples = state.sampler.sample(state.controller)
-    fresh = (fresh_samples.obs, targets(fresh_samples.X))
-    flat = {
-        part: (inputs_of(obs), target.reshape(-1, target.shape[-1]))
-        for part, (obs, target) in (("fit", training), ("fresh", fresh))
-    }
-
-    after, _ = rollout(trainer.bank, robot, task, scenes)
-    networks = {
-        "network": {
-            "gap_fit": clipped_gap(network_actions(trainer, training[0]), flat["fit"][1]),
-            "gap_fresh": clipped_gap(network_actions(trainer, fresh[0]), flat["fresh"][1]),
-            "gap_own": own_gap(after, gains),
-            "distance": round(float(scenes.final_distance(after).mean()), 4),
-            "distance_test": curve[-1],
-        }
-    }
+    world = trainer.bank.world(state.name)
+    untouched, _ = rollout(trainer.bank, robot, task, scenes)  # any policy: the scenes' start
+    by_obs = {part: (samples[part].obs, flat[part]) for part in samples}
+    networks = {"network": bank_figures(trainer.bank, world, by_obs, scenes, test_positions, gains)}
+    schedule = dict(steps=args.sgd_steps, seed=trainer.config.seed)
+    refit = refitted(trainer.bank, world, samples["fit"].obs, flat["fit"], **schedule)
+    networks["network_refit"] = bank_figures(refit, world, by_obs, scenes, test_positions, gains)
+    by_inputs = {part: (inputs_of(samples[part].obs), flat[part]) for part in samples}
     M, T = state.sampler.num_conditions, state.sampler.horizon
     for seed, inputs in enumerate(INPUTS):
         torch.manual_seed(trainer.config.seed + seed)
@@ -260,9 +285,9 @@ def main() -> None:
             horizon=T,
             hidden=tuple(args.hidden),
         )
-        fit(net, *flat["fit"], steps=args.sgd_steps, seed=trainer.config.seed + seed)
+        fit(net, *by_inputs["fit"], steps=args.sgd_steps, seed=trainer.config.seed + seed)
         with torch.no_grad():
-            gaps = {f"gap_{part}": clipped_gap(net(*x), target) for part, (x, target) in flat.items()}
+            gaps = {f"gap_{part}": clipped_gap(net(*x), target) for part, (x, target) in by_inputs.items()}
         policy = TensorDictModule(net, in_keys=[*STATE_KEYS, "condition", "step_count"], out_keys=["action"])
         networks[inputs] = {**gaps, **acting(scenes, policy, gains)}
         if not net.scene:  # the test positions are not among the conditions it knows
@@ -283,10 +308,10 @@ def main() -> None:
         "hidden": args.hidden,
         "controllers": round(controller_distance(scenes, trainer, gains), 4),
         "sampled": round(float(state.samples.distance.mean()), 4),
-        "untouched": round(float(scenes.start_distance(after).mean()), 4),
-        "saturated": round(float((asked.abs() > TORQUE_LIMIT).double().mean()), 4),
-        "within_cell_share": within_cell_share(training[1]),
-        "target_norm": round(float(flat["fit"][1].clamp(-TORQUE_LIMIT, TORQUE_LIMIT).norm(dim=-1).mean()), 4),
+        "untouched": round(float(scenes.start_distance(untouched).mean()), 4),
+        "saturated": round(float((asked["fit"].abs() > TORQUE_LIMIT).double().mean()), 4),
+        "within_cell_share": within_cell_share(targets["fit"]),
+        "target_norm": round(float(flat["fit"].clamp(-TORQUE_LIMIT, TORQUE_LIMIT).norm(dim=-1).mean()), 4),
         "rerun_curve": curve,
         "run_curve": [round(d, 4) for d in results.get("finetune", {}).get(args.start, [])[: len(curve)]],
         "finetune_s": round(finetuned_s, 1),

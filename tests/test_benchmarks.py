@@ -486,10 +486,11 @@ def test_imitation_capacity_reruns_the_runs_fine_tuning_and_fits_its_targets(tin
     args = ["--iterations", "1", "--sgd-steps", "20", "--hidden", "8"]
     out = last_json("imitation_capacity.py", str(run_dir), *args)
     assert out["rerun_curve"] == out["run_curve"]  # run.py's own fine-tuning, redone
-    assert set(out["networks"]) == {"network", "state", "state_time", "state_scene_time"}
+    assert set(out["networks"]) == {"network", "network_refit", "state", "state_time", "state_scene_time"}
     for name, figures in out["networks"].items():
         tested = {"distance_test"} if name != "state_scene_time" else set()  # knows no test scene
         assert set(figures) == {"gap_fit", "gap_fresh", "gap_own", "distance"} | tested
         assert all(v >= 0 for v in figures.values()), figures
     assert out["networks"]["network"]["distance_test"] == out["rerun_curve"][-1]
+    assert out["networks"]["network_refit"]["gap_fit"] != out["networks"]["network"]["gap_fit"]  # trained on
     assert 0 <= out["within_cell_share"] <= 1 and out["untouched"] > 0
