@@ -36,7 +36,9 @@ network after the run's S-steps, and ``network_refit`` a copy of it trained on t
 ``saturated`` is the share of the controllers' mean torques at the samples beyond the limits;
 ``within_cell_share`` is the share of the targets' variance that lies within (condition, time
 step) cells, between one cell's samples: what the controllers' feedback ``K_t`` adds to
-their feed-forward at the samples' spread of states.
+their feed-forward at the samples' spread of states. ``jitter_share`` is the share in the
+cells' means less those means filtered along time (a Gaussian of 2 steps): what changes from
+one step to the next.
 
 ``rerun_curve`` is the bank's network at the test positions after each iteration, beside the
 run's own fine-tuning curve ``run_curve``: the two are equal when this reran the run.
@@ -65,10 +67,13 @@ from modnet.bank import ModuleBank
 from modnet.config import saved_run
 from modnet.envs import WorldEnv
 from modnet.evaluate import evaluating, evaluation_env, rollout, score, training_env
-from modnet.gps.controller import LinearGaussianGains
+from modnet.gps.controller import LinearGaussianGains, time_filtered
 from modnet.gps.sampling import STATE_KEYS, state_of
 from modnet.gps.trainer import C_STEPS
 from modnet.specs import TORQUE_LIMIT
+
+#: the Gaussian (steps) that :func:`jitter_share` filters the targets along time with
+JITTER_SIGMA = 2.0
 
 #: the regressors' inputs beside the state: (time step, condition)
 INPUTS = {"state": (False, False), "state_time": (True, False), "state_scene_time": (True, True)}
@@ -198,6 +203,17 @@ def within_cell_share(target: torch.Tensor) -> float:
     return round(float(within / total), 4)
 
 
+def jitter_share(target: torch.Tensor, sigma: float = JITTER_SIGMA) -> float:
+    """The share of the variance of ``target [M, N, T, dU]`` (clipped to the torque limits) in
+    its cell means' departure from themselves filtered along time (a Gaussian of ``sigma``
+    steps): how much of it changes from one step to the next."""
+    target = target.clamp(-TORQUE_LIMIT, TORQUE_LIMIT).to(torch.float64)
+    means = target.mean(1)  # [M, T, dU]
+    jitter = (means - time_filtered(means, sigma)).square().sum(-1).mean()
+    total = (target - target.mean((0, 1, 2))).square().sum(-1).mean()
+    return round(float(jitter / total), 4)
+
+
 def network_actions(bank: ModuleBank, world, obs: TensorDictBase) -> torch.Tensor:
     """``bank``'s ``world`` network's mean actions at ``obs``, flattened."""
     with evaluating(bank):
@@ -311,6 +327,7 @@ def main() -> None:
         "untouched": round(float(scenes.start_distance(untouched).mean()), 4),
         "saturated": round(float((asked["fit"].abs() > TORQUE_LIMIT).double().mean()), 4),
         "within_cell_share": within_cell_share(targets["fit"]),
+        "jitter_share": jitter_share(targets["fit"]),
         "target_norm": round(float(flat["fit"].clamp(-TORQUE_LIMIT, TORQUE_LIMIT).norm(dim=-1).mean()), 4),
         "rerun_curve": curve,
         "run_curve": [round(d, 4) for d in results.get("finetune", {}).get(args.start, [])[: len(curve)]],

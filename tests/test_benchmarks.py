@@ -479,6 +479,12 @@ def test_imitation_capacity_fits_what_depends_on_scene_and_time_only_when_given_
     assert capacity.within_cell_share(target.reshape(M, N, T, 2)) == 0.0
     noise = torch.randn(M, N, T, 2)
     assert capacity.within_cell_share(noise - noise.mean(1, keepdim=True)) == 1.0
+    # and in what changes from one step to the next: none in a scene's constant, all in a flip
+    # every step (40 steps, away from the edges the filter leaves the mean)
+    by_scene = torch.arange(4.0)[:, None, None, None].expand(4, 2, 40, 2)
+    assert capacity.jitter_share(by_scene) == 0.0
+    flips = (torch.arange(40.0) % 2)[None, None, :, None].expand(4, 2, 40, 2)
+    assert capacity.jitter_share(flips) > 0.95
 
 
 def test_imitation_capacity_reruns_the_runs_fine_tuning_and_fits_its_targets(tiny_run):
@@ -493,4 +499,4 @@ def test_imitation_capacity_reruns_the_runs_fine_tuning_and_fits_its_targets(tin
         assert all(v >= 0 for v in figures.values()), figures
     assert out["networks"]["network"]["distance_test"] == out["rerun_curve"][-1]
     assert out["networks"]["network_refit"]["gap_fit"] != out["networks"]["network"]["gap_fit"]  # trained on
-    assert 0 <= out["within_cell_share"] <= 1 and out["untouched"] > 0
+    assert 0 <= out["within_cell_share"] <= 1 and 0 <= out["jitter_share"] <= 1 and out["untouched"] > 0

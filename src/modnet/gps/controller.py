@@ -70,16 +70,29 @@ def smoothed_noise(
     noise = torch.randn(B, T, dU, generator=generator, dtype=dtype)
     if sigma <= 0 or T < 2:
         return noise
+    filtered = time_filtered(noise, sigma)
+    return filtered / filtered.std(1, unbiased=False, keepdim=True).clamp_min(1e-12)
+
+
+def time_filtered(x: torch.Tensor, sigma: float) -> torch.Tensor:
+    """``x [B, T, D]`` filtered along time (dim 1) with a Gaussian kernel of standard deviation
+    ``sigma > 0`` steps, truncated at 4 sigma, edges mirrored as in ``scipy.ndimage.gaussian_filter``.
+
+    Examples:
+        >>> x = (torch.arange(40.0) % 2).reshape(1, 40, 1)  # 0 1 0 1 ...: a change every step
+        >>> round(float(time_filtered(x, 2.0)[0, 20, 0]), 4)  # filtered out: the mean is left
+        0.5
+    """
+    T = x.shape[1]
     radius = int(4.0 * sigma + 0.5)
-    offsets = torch.arange(-radius, radius + 1, dtype=dtype)
+    offsets = torch.arange(-radius, radius + 1, dtype=x.dtype)
     kernel = torch.exp(-0.5 * (offsets / sigma) ** 2)
     kernel = kernel / kernel.sum()
     # "reflect" edges (d c b a | a b c d | d c b a): index i -> its mirror, period 2T
     index = torch.arange(-radius, T + radius) % (2 * T)
     index = torch.where(index >= T, 2 * T - 1 - index, index)
-    windows = noise[:, index].unfold(1, 2 * radius + 1, 1)  # [B, T, dU, 2r+1]
-    filtered = windows @ kernel
-    return filtered / filtered.std(1, unbiased=False, keepdim=True).clamp_min(1e-12)
+    windows = x[:, index].unfold(1, 2 * radius + 1, 1)  # [B, T, D, 2r+1]
+    return windows @ kernel
 
 
 @dataclass
