@@ -72,7 +72,7 @@ from modnet.gps.sampling import STATE_KEYS, state_of
 from modnet.gps.trainer import C_STEPS
 from modnet.specs import TORQUE_LIMIT
 
-#: the Gaussian (steps) that :func:`jitter_share` filters the targets along time with
+#: the Gaussian (steps) that :func:`variance_shares` filters the targets along time with
 JITTER_SIGMA = 2.0
 
 #: the regressors' inputs beside the state: (time step, condition)
@@ -100,13 +100,13 @@ class Regressor(nn.Module):
         self.time, self.scene = INPUTS[inputs]
         self.conditions, self.horizon = conditions, horizon
         width = state_dim + self.time + conditions * self.scene
+        self.register_buffer("mean", torch.zeros(width))
+        self.register_buffer("std", torch.ones(width))
         layers: list[nn.Module] = []
         for units in hidden:
             layers += [nn.Linear(width, units), nn.ReLU()]
             width = units
         self.net = nn.Sequential(*layers, nn.Linear(width, action_dim))
-        self.register_buffer("mean", torch.zeros(state_dim + self.time + conditions * self.scene))
-        self.register_buffer("std", torch.ones_like(self.mean))
 
     def features(self, *inputs: torch.Tensor) -> torch.Tensor:
         """``(*state parts, condition, step_count)`` -> the network's unnormalised inputs."""
@@ -194,24 +194,20 @@ def own_gap(td: TensorDictBase, gains: LinearGaussianGains) -> float:
     return clipped_gap(td["action"], asked)
 
 
-def within_cell_share(target: torch.Tensor) -> float:
-    """The share of the variance of ``target [M, N, T, dU]`` (clipped to the torque limits)
-    within its (condition, time step) cells, across their ``N`` samples."""
-    target = target.clamp(-TORQUE_LIMIT, TORQUE_LIMIT)
-    within = (target - target.mean(1, keepdim=True)).square().sum(-1).mean()
-    total = (target - target.mean((0, 1, 2))).square().sum(-1).mean()
-    return round(float(within / total), 4)
-
-
-def jitter_share(target: torch.Tensor, sigma: float = JITTER_SIGMA) -> float:
-    """The share of the variance of ``target [M, N, T, dU]`` (clipped to the torque limits) in
-    its cell means' departure from themselves filtered along time (a Gaussian of ``sigma``
-    steps): how much of it changes from one step to the next."""
+def variance_shares(target: torch.Tensor, sigma: float = JITTER_SIGMA) -> dict[str, float]:
+    """Where the variance of ``target [M, N, T, dU]`` (clipped to the torque limits) lies:
+    ``within_cell_share`` within its (condition, time step) cells, across their ``N`` samples;
+    ``jitter_share`` in the cells' means less those means filtered along time (a Gaussian of
+    ``sigma`` steps), what changes from one step to the next."""
     target = target.clamp(-TORQUE_LIMIT, TORQUE_LIMIT).to(torch.float64)
     means = target.mean(1)  # [M, T, dU]
-    jitter = (means - time_filtered(means, sigma)).square().sum(-1).mean()
-    total = (target - target.mean((0, 1, 2))).square().sum(-1).mean()
-    return round(float(jitter / total), 4)
+    parts = {
+        "within_cell_share": target - means[:, None],
+        "jitter_share": means - time_filtered(means, sigma),
+        "total": target - target.mean((0, 1, 2)),
+    }
+    variance = {name: part.square().sum(-1).mean() for name, part in parts.items()}
+    return {name: round(float(variance[name] / variance["total"]), 4) for name in parts if name != "total"}
 
 
 def network_actions(bank: ModuleBank, world, obs: TensorDictBase) -> torch.Tensor:
@@ -326,8 +322,7 @@ def main() -> None:
         "sampled": round(float(state.samples.distance.mean()), 4),
         "untouched": round(float(scenes.start_distance(untouched).mean()), 4),
         "saturated": round(float((asked["fit"].abs() > TORQUE_LIMIT).double().mean()), 4),
-        "within_cell_share": within_cell_share(targets["fit"]),
-        "jitter_share": jitter_share(targets["fit"]),
+        **variance_shares(targets["fit"]),
         "target_norm": round(float(flat["fit"].clamp(-TORQUE_LIMIT, TORQUE_LIMIT).norm(dim=-1).mean()), 4),
         "rerun_curve": curve,
         "run_curve": [round(d, 4) for d in results.get("finetune", {}).get(args.start, [])[: len(curve)]],

@@ -474,17 +474,16 @@ def test_imitation_capacity_fits_what_depends_on_scene_and_time_only_when_given_
             gaps[name] = capacity.clipped_gap(net(*inputs), target)
     assert gaps["state"] == pytest.approx(float(target.norm(dim=-1).mean()), rel=0.05)  # the mean, 0
     assert gaps["state_scene_time"] < 0.1 * gaps["state"], gaps
-    # the share of the targets' variance between one cell's samples: none here, all in noise
-    # with zero mean in every cell
-    assert capacity.within_cell_share(target.reshape(M, N, T, 2)) == 0.0
-    noise = torch.randn(M, N, T, 2)
-    assert capacity.within_cell_share(noise - noise.mean(1, keepdim=True)) == 1.0
-    # and in what changes from one step to the next: none in a scene's constant, all in a flip
-    # every step (40 steps, away from the edges the filter leaves the mean)
+    # where the targets' variance lies: none between one cell's samples or from step to step
+    # here; all between the samples in noise with zero mean in every cell; all from step to
+    # step in a flip every step (40 steps: away from the edges the filter leaves the mean)
+    assert capacity.variance_shares(target.reshape(M, N, T, 2))["within_cell_share"] == 0.0
     by_scene = torch.arange(4.0)[:, None, None, None].expand(4, 2, 40, 2)
-    assert capacity.jitter_share(by_scene) == 0.0
+    assert capacity.variance_shares(by_scene) == {"within_cell_share": 0.0, "jitter_share": 0.0}
+    noise = torch.randn(M, N, T, 2)
+    assert capacity.variance_shares(noise - noise.mean(1, keepdim=True))["within_cell_share"] == 1.0
     flips = (torch.arange(40.0) % 2)[None, None, :, None].expand(4, 2, 40, 2)
-    assert capacity.jitter_share(flips) > 0.95
+    assert capacity.variance_shares(flips)["jitter_share"] > 0.95
 
 
 def test_imitation_capacity_reruns_the_runs_fine_tuning_and_fits_its_targets(tiny_run):
