@@ -39,9 +39,8 @@ from tqdm import tqdm  # noqa: E402
 from modnet import report  # noqa: E402
 from modnet.bank import ModuleBank  # noqa: E402
 from modnet.checkpoint import CHECKPOINT, Checkpoint, CheckpointError, load_checkpoint, save_checkpoint  # noqa: E402
-from modnet.config import ConfigError, RunConfig, flatten, register_configs, validate  # noqa: E402
-from modnet.envs import WorldEnv  # noqa: E402
-from modnet.evaluate import FineTuning, FineTuningFailed, ZeroShot, evaluation_env, finetune, zero_shot  # noqa: E402
+from modnet.config import ConfigError, RunConfig, flatten, held_out_env, register_configs, validate  # noqa: E402
+from modnet.evaluate import FineTuning, FineTuningFailed, ZeroShot, finetune, zero_shot  # noqa: E402
 from modnet.gps.trainer import GPSConfig, GPSTrainer  # noqa: E402
 from modnet.loggers import RunLogger  # noqa: E402
 from modnet.pretrain import pretrain_vision  # noqa: E402
@@ -135,24 +134,6 @@ def pretrain(run: RunConfig, split: Split, bank: ModuleBank, report_file: Path) 
             f"pretrained {module}'s convolutions on {figures['images']} scenes: objects found "
             f"{figures['val_error']:.3f} m off (the mean position: {figures['baseline_error']:.3f} m)"
         )
-
-
-def held_out_env(run: RunConfig, universe: Universe, split: Split, random: bool = False) -> WorldEnv:
-    """The held-out world, one env copy per test condition (``random``: per extra random condition)."""
-    ev = run.eval
-    conditions, number, seed = (
-        ("random", ev.random_conditions, ev.random_seed)
-        if random
-        else (ev.conditions, ev.num_conditions, run.gps.condition_seed)
-    )
-    return evaluation_env(
-        *split.holdout,
-        conditions=conditions,
-        num_conditions=number,
-        seed=seed,
-        horizon=run.gps.horizon,
-        pixels=universe.pixels,
-    )
 
 
 def evaluate(run: RunConfig, universe: Universe, split: Split, bank: ModuleBank) -> tuple[dict, ZeroShot]:

@@ -53,9 +53,9 @@ from pathlib import Path
 import torch
 from _run_dir import FINISHED, finished_run
 
-from modnet.config import RunConfig, saved_run
+from modnet.config import RunConfig, held_out_env, saved_run, validate
 from modnet.envs import FINAL_STEPS, WorldEnv
-from modnet.evaluate import _start_bank, evaluation_env, rollout, score, start_config, training_env
+from modnet.evaluate import _start_bank, rollout, score, start_config, training_env
 from modnet.gps.controller import LinearGaussianGains
 from modnet.gps.lqr import lqr_forward
 from modnet.gps.trainer import C_STEPS, POLICY_LINEARIZATIONS, GPSTrainer
@@ -94,11 +94,12 @@ def predicted_distance(trainer: GPSTrainer, gains: LinearGaussianGains) -> float
 def start_trainer(run_dir: Path, run: RunConfig, results: dict, start: str, **options) -> GPSTrainer:
     """The trainer ``run.py finetune=true`` fine-tunes ``start`` with (on the held-out world of the
     finished run in ``run_dir``), with ``options`` replacing the run's fine-tuning GPS options."""
+    universe, _ = validate(run)
     robot, task = results["holdout"].split("/")
     wrong_task = results["methods"]["wrong_task"]["task"] if "wrong_task" in results["methods"] else None
     config = start_config(dataclasses.replace(run.finetune_gps_config(), **options), start)
     bank = _start_bank(run_dir / "bank", start, robot, task, wrong_task, config.seed)
-    return GPSTrainer(bank, [(robot, task)], config)
+    return GPSTrainer(bank, [(robot, task)], config, pixels=universe.pixels)
 
 
 def first_iteration(
@@ -110,7 +111,7 @@ def first_iteration(
     onto the network's linearisation."""
     trainer = start_trainer(run_dir, run, results, start, **options)
     bank, config, (robot, task) = trainer.bank, trainer.config, results["holdout"].split("/")
-    scenes = training_env(robot, task, config, horizon=results["horizon"])
+    scenes = training_env(robot, task, config, horizon=results["horizon"], pixels=trainer.pixels)
     before = score(bank, robot, task, scenes)
 
     c_steps: list[LinearGaussianGains] = []  # each C-step's controllers
@@ -132,7 +133,7 @@ def first_iteration(
     (diagnostics,) = trainer.step().values()
     (state,) = trainer.states.values()
     after, _ = rollout(bank, robot, task, scenes)
-    test_positions = evaluation_env(robot, task, horizon=results["horizon"])
+    test_positions = held_out_env(run, *validate(run))
     distances = {
         "network_before": before.mean,
         "linearisation": controller_distance(scenes, trainer, state.current.gains),

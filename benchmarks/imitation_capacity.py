@@ -8,10 +8,12 @@ state can do what the controllers do: their feed-forward ``k_t`` may depend on t
 and the scene in a way the state does not tell apart.
 
 This reruns ``--iterations`` fine-tuning iterations of a start (as ``run.py finetune=true``
-does, with the run's options unless ``--c-step`` is given) on a finished run's bank, then
+does, with the run's options unless ``--algo`` or ``--c-step`` is given; MDGPS only, whose
+S-step regresses onto the controllers' mean actions) on a finished run's bank, then
 takes the last iteration's samples, the S-step's own training set, and fits to the same
 targets (clipped to the torque limits where the run's ``gps.clip_targets`` clips them), from
-scratch and without dropout, one plain network per set of inputs:
+scratch and without dropout (on their squared error, where the S-step weights it by the
+controllers' precision), one plain network per set of inputs:
 
 - ``state``: the state ``x`` (what the composed modules read, together);
 - ``state_time``: ``x`` and the time step ``t / T``;
@@ -25,7 +27,9 @@ network after the run's S-steps, and ``network_refit`` a copy of it trained on t
 
 - ``gap_fit``: the mean norm of its mean action less the target, both clipped to the torque
   limits, on the training set;
-- ``gap_fresh``: the same on a fresh draw of the controllers' samples;
+- ``gap_fresh``: the same on a fresh draw of the controllers' samples (``fit_drawn_by`` says
+  which policy drew the training set: the network, when the last iteration sampled it, as
+  the first of a transferred start does);
 - ``gap_own``: the same at the states it visits itself, acting alone (what DAgger would label);
 - ``distance``: where it ends when it acts (mean actions) on the held-out world's training
   conditions; beside ``controllers`` (the controllers the iteration ends with, mean actions)
@@ -38,14 +42,15 @@ network after the run's S-steps, and ``network_refit`` a copy of it trained on t
 step) cells, between one cell's samples: what the controllers' feedback ``K_t`` adds to
 their feed-forward at the samples' spread of states. ``jitter_share`` is the share in the
 cells' means less those means filtered along time (a Gaussian of 2 steps): what changes from
-one step to the next.
+one step to the next (the cell means also carry a 1/N share of the spread between samples,
+so this overstates it by at most ``within_cell_share / N``).
 
 ``rerun_curve`` is the bank's network at the test positions after each iteration, beside the
 run's own fine-tuning curve ``run_curve``: the two are equal when this reran the run.
 
 Prints a line per network, then ONE JSON object on its last line.
 
-    python benchmarks/imitation_capacity.py outputs/manipulation --iterations 10 --c-step pi2
+    python benchmarks/imitation_capacity.py outputs/manipulation --iterations 10 --algo mdgps --c-step pi2
 """
 
 from __future__ import annotations
@@ -64,9 +69,9 @@ from tensordict.nn import TensorDictModule
 from torch import nn
 
 from modnet.bank import ModuleBank
-from modnet.config import saved_run
+from modnet.config import held_out_env, saved_run, validate
 from modnet.envs import WorldEnv
-from modnet.evaluate import evaluating, evaluation_env, rollout, score, training_env
+from modnet.evaluate import evaluating, rollout, score, training_env
 from modnet.gps.controller import LinearGaussianGains, time_filtered
 from modnet.gps.sampling import STATE_KEYS, state_of
 from modnet.gps.trainer import C_STEPS
@@ -236,6 +241,7 @@ def main() -> None:
     parser.add_argument("run_dir", type=Path, help="a finished run.py run directory with finetune=true")
     parser.add_argument("--start", choices=TRANSFERRED, default="composed")
     parser.add_argument("--iterations", type=int, default=10, help="fine-tuning iterations before the fits")
+    parser.add_argument("--algo", choices=["badmm", "mdgps"], default=None, help="default: the run's")
     parser.add_argument("--c-step", choices=C_STEPS, default=None, help="default: the run's")
     parser.add_argument("--sgd-steps", type=int, default=5000, help="Adam steps of each regressor")
     parser.add_argument("--hidden", type=int, nargs="+", default=[80] * 5, help="the regressors' layers")
@@ -248,10 +254,17 @@ def main() -> None:
         parser.error(f"{args.run_dir}'s bank has no wrong task module; valid starts: composed")
     run = saved_run(args.run_dir)
     torch.set_num_threads(run.threads)
-    options = {"c_step": args.c_step} if args.c_step else {}
-    robot, task = results["holdout"].split("/")
+    options = {"algo": args.algo or run.finetune_gps_config().algo}
+    if args.c_step:
+        options["c_step"] = args.c_step
+    if options["algo"] != "mdgps":  # BADMM's duals shift its targets, and it C-steps after the S-step
+        parser.error("only MDGPS's S-step regresses onto the controllers' mean actions; use --algo mdgps")
+    universe, split = validate(run)
+    if universe.pixels:
+        parser.error(f"{args.run_dir} is a run from images; this compares networks of the state")
+    robot, task = split.holdout
     # the envs first, then the trainer (which seeds torch), as run.py's fine-tuning builds them
-    test_positions = evaluation_env(robot, task, horizon=results["horizon"])
+    test_positions = held_out_env(run, universe, split)
     scenes = training_env(robot, task, run.finetune_gps_config(), horizon=results["horizon"])
     try:
         trainer = start_trainer(args.run_dir, run, results, args.start, **options)
@@ -268,6 +281,8 @@ def main() -> None:
     finetuned_s = time.perf_counter() - started
     (state,) = trainer.states.values()
     gains = state.controller.gains
+    last = trainer.iteration - 1  # which policy drew the S-step's samples:
+    drawn_by_network = trainer.config.init_from_policy if last == 0 else trainer.config.sample_on_policy
 
     asked = {"fit": gains.mean_actions(state.samples.X)}  # at the S-step's samples and a fresh draw
     samples = {"fit": state.samples, "fresh": state.sampler.sample(state.controller)}
@@ -316,6 +331,7 @@ def main() -> None:
         "start": args.start,
         "c_step": trainer.config.c_step,
         "iterations": args.iterations,
+        "fit_drawn_by": "network" if drawn_by_network else "controllers",
         "sgd_steps": args.sgd_steps,
         "hidden": args.hidden,
         "controllers": round(controller_distance(scenes, trainer, gains), 4),

@@ -31,7 +31,8 @@ from pathlib import Path
 from typing import Any
 
 from modnet.bank import BankConfig, ModuleBank
-from modnet.evaluate import FINETUNE_STARTS
+from modnet.envs import WorldEnv
+from modnet.evaluate import FINETUNE_STARTS, evaluation_env
 from modnet.gps.badmm import BADMMConfig
 from modnet.gps.dynamics import DynamicsPriorConfig
 from modnet.gps.trainer import GPSConfig
@@ -384,6 +385,25 @@ def validate(run: RunConfig) -> tuple[Universe, Split]:
                 f"{universe.name!r} reads images: use regression"
             )
     return universe, split
+
+
+def held_out_env(run: RunConfig, universe: Universe, split: Split, random: bool = False) -> WorldEnv:
+    """The held-out world as ``run.py`` evaluates it, one env copy per test condition of ``run``
+    (``random``: per extra random condition)."""
+    ev = run.eval
+    conditions, number, seed = (
+        ("random", ev.random_conditions, ev.random_seed)
+        if random
+        else (ev.conditions, ev.num_conditions, run.gps.condition_seed)
+    )
+    return evaluation_env(
+        *split.holdout,
+        conditions=conditions,
+        num_conditions=number,
+        seed=seed,
+        horizon=run.gps.horizon,
+        pixels=universe.pixels,
+    )
 
 
 def saved_run(run_dir: str | Path) -> RunConfig:

@@ -38,7 +38,7 @@ if TYPE_CHECKING:
     from modnet.gps.cost import QuadraticCost
     from modnet.gps.dynamics import LinearGaussianDynamics
 
-__all__ = ["LinearGaussianController", "LinearGaussianGains", "smoothed_noise"]
+__all__ = ["LinearGaussianController", "LinearGaussianGains", "smoothed_noise", "time_filtered"]
 
 
 def smoothed_noise(
