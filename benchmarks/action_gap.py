@@ -26,7 +26,9 @@ import json
 from pathlib import Path
 
 import torch
+from tensordict import TensorDictBase
 
+from modnet.bank import ModuleBank
 from modnet.checkpoint import load_checkpoint
 from modnet.config import saved_run, validate
 from modnet.evaluate import evaluating
@@ -46,10 +48,24 @@ def restored_trainer(run_dir: Path) -> GPSTrainer:
     return trainer
 
 
+def clipped_gaps(asked: torch.Tensor, network: torch.Tensor) -> torch.Tensor:
+    """The norms ``[...]`` of ``asked - network`` (actions ``[..., dU]``), both clipped to the
+    torque limits the arms apply."""
+    clip = TORQUE_LIMIT
+    return (asked.clamp(-clip, clip) - network.clamp(-clip, clip)).norm(dim=-1)
+
+
+def network_mean_actions(bank: ModuleBank, name: str, obs: TensorDictBase, pixels: bool) -> torch.Tensor:
+    """The mean actions (float64) of world ``name``'s network at ``obs``, in passes bounded
+    for images when ``pixels``."""
+    with evaluating(bank):
+        out = bank.forward_worlds({name: obs}, rows_per_pass=PIXEL_ROWS_PER_PASS if pixels else None)
+    return out[bank.world(name)]["loc"].to(torch.float64)
+
+
 def gap_figures(asked: torch.Tensor, network: torch.Tensor, distance: torch.Tensor) -> dict:
     """The figures of one world from the controllers' and network's mean actions ``[M, N, T, dU]``."""
-    clipped = asked.clamp(-TORQUE_LIMIT, TORQUE_LIMIT) - network.clamp(-TORQUE_LIMIT, TORQUE_LIMIT)
-    clipped = clipped.norm(dim=-1)  # [M, N, T]
+    clipped = clipped_gaps(asked, network)  # [M, N, T]
     horizon, start, parts = asked.shape[2], 0, {}
     for part, end in PARTS.items():
         stop = max(start + 1, round(end * horizon))
@@ -77,10 +93,7 @@ def main() -> None:
     worlds = {}
     for name, state in trainer.states.items():
         samples = state.sampler.sample(state.controller)
-        with evaluating(trainer.bank):
-            rows = PIXEL_ROWS_PER_PASS if trainer.pixels else None
-            out = trainer.bank.forward_worlds({name: samples.obs}, rows_per_pass=rows)
-        network = out[trainer.bank.world(name)]["loc"].to(torch.float64)
+        network = network_mean_actions(trainer.bank, name, samples.obs, trainer.pixels)
         asked = state.controller.gains.mean_actions(samples.X)
         worlds[name] = gap_figures(asked, network, samples.distance)
         f = worlds[name]

@@ -63,6 +63,7 @@ from pathlib import Path
 
 import torch
 from _run_dir import FINISHED, finished_run
+from action_gap import clipped_gaps, network_mean_actions
 from first_finetune_iteration import TRANSFERRED, controller_distance, start_trainer
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule
@@ -71,7 +72,7 @@ from torch import nn
 from modnet.bank import ModuleBank
 from modnet.config import held_out_env, saved_run, validate
 from modnet.envs import WorldEnv
-from modnet.evaluate import evaluating, rollout, score, training_env
+from modnet.evaluate import rollout, score, training_env
 from modnet.gps.controller import LinearGaussianGains, time_filtered
 from modnet.gps.sampling import STATE_KEYS, state_of
 from modnet.gps.trainer import C_STEPS
@@ -172,8 +173,7 @@ def refitted(bank: ModuleBank, world, obs: TensorDictBase, target: torch.Tensor,
 
 def clipped_gap(actions: torch.Tensor, target: torch.Tensor) -> float:
     """Mean norm of ``actions - target``, both clipped to the torque limits the arms apply."""
-    gap = actions.clamp(-TORQUE_LIMIT, TORQUE_LIMIT) - target.clamp(-TORQUE_LIMIT, TORQUE_LIMIT)
-    return round(float(gap.norm(dim=-1).mean()), 4)
+    return round(float(clipped_gaps(actions, target).mean()), 4)
 
 
 def acting(scenes: WorldEnv, policy, gains: LinearGaussianGains) -> dict[str, float]:
@@ -215,19 +215,15 @@ def variance_shares(target: torch.Tensor, sigma: float = JITTER_SIGMA) -> dict[s
     return {name: round(float(variance[name] / variance["total"]), 4) for name in parts if name != "total"}
 
 
-def network_actions(bank: ModuleBank, world, obs: TensorDictBase) -> torch.Tensor:
-    """``bank``'s ``world`` network's mean actions at ``obs``, flattened."""
-    with evaluating(bank):
-        loc = bank.forward_worlds({world: obs})[world]["loc"]
-    return loc.reshape(-1, loc.shape[-1])
-
-
-def bank_figures(bank: ModuleBank, world, data: dict, scenes: WorldEnv, tests: WorldEnv, gains) -> dict:
-    """A bank's network's figures: its gaps on ``data`` (``{part: (obs, flat target)}``) and at
-    its own states, where it ends on ``scenes`` and on ``tests`` (the test positions)."""
-    robot, task = world
+def bank_figures(bank: ModuleBank, name: str, data: dict, scenes: WorldEnv, tests: WorldEnv, gains) -> dict:
+    """World ``name``'s network's figures: its gaps on ``data`` (``{part: (obs, target)}``) and
+    at its own states, where it ends on ``scenes`` and on ``tests`` (the test positions)."""
+    robot, task = bank.world(name)
     after, _ = rollout(bank, robot, task, scenes)
-    gaps = {f"gap_{part}": clipped_gap(network_actions(bank, world, x), t) for part, (x, t) in data.items()}
+    gaps = {
+        f"gap_{part}": clipped_gap(network_mean_actions(bank, name, x, pixels=False), t)
+        for part, (x, t) in data.items()
+    }
     return {
         **gaps,
         "gap_own": own_gap(after, gains),
@@ -295,11 +291,11 @@ def main() -> None:
 
     world = trainer.bank.world(state.name)
     untouched, _ = rollout(trainer.bank, robot, task, scenes)  # any policy: the scenes' start
-    by_obs = {part: (samples[part].obs, flat[part]) for part in samples}
-    networks = {"network": bank_figures(trainer.bank, world, by_obs, scenes, test_positions, gains)}
+    by_obs = {part: (samples[part].obs, targets[part]) for part in samples}
+    networks = {"network": bank_figures(trainer.bank, state.name, by_obs, scenes, test_positions, gains)}
     schedule = dict(steps=args.sgd_steps, seed=trainer.config.seed)
     refit = refitted(trainer.bank, world, samples["fit"].obs, flat["fit"], **schedule)
-    networks["network_refit"] = bank_figures(refit, world, by_obs, scenes, test_positions, gains)
+    networks["network_refit"] = bank_figures(refit, state.name, by_obs, scenes, test_positions, gains)
     by_inputs = {part: (inputs_of(samples[part].obs), flat[part]) for part in samples}
     M, T = state.sampler.num_conditions, state.sampler.horizon
     for seed, inputs in enumerate(INPUTS):
