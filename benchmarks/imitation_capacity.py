@@ -269,11 +269,10 @@ def main() -> None:
 
     started = time.perf_counter()
     curve = []
-    for iteration in range(args.iterations + 1):  # scored as run.py scores it, between iterations
+    for iteration in range(args.iterations + 1):  # the network at the test positions, as run.py's curve
         if iteration:
             trainer.step()
         curve.append(round(score(trainer.bank, robot, task, test_positions).mean, 4))
-        score(trainer.bank, robot, task, scenes)
     finetuned_s = time.perf_counter() - started
     (state,) = trainer.states.values()
     gains = state.controller.gains
