@@ -35,7 +35,9 @@ network after the run's S-steps, and ``network_refit`` a copy of it trained on t
   conditions; beside ``controllers`` (the controllers the iteration ends with, mean actions)
   and ``untouched``;
 - ``distance_test``: where it ends at the test positions (not for ``state_scene_time``, which
-  knows only the training conditions).
+  knows only the training conditions); ``distance_random``, where it ends on the run's
+  ``eval.random_conditions`` further random positions (when the run drew any), a steadier
+  figure than four positions give.
 
 ``saturated`` is the share of the controllers' mean torques at the samples beyond the limits;
 ``within_cell_share`` is the share of the targets' variance that lies within (condition, time
@@ -215,9 +217,10 @@ def variance_shares(target: torch.Tensor, sigma: float = JITTER_SIGMA) -> dict[s
     return {name: round(float(variance[name] / variance["total"]), 4) for name in parts if name != "total"}
 
 
-def bank_figures(bank: ModuleBank, name: str, data: dict, scenes: WorldEnv, tests: WorldEnv, gains) -> dict:
+def bank_figures(bank: ModuleBank, name: str, data: dict, scenes: WorldEnv, tests: dict, gains) -> dict:
     """World ``name``'s network's figures: its gaps on ``data`` (``{part: (obs, target)}``) and
-    at its own states, where it ends on ``scenes`` and on ``tests`` (the test positions)."""
+    at its own states, where it ends on ``scenes`` and on each of ``tests``
+    (``{"distance_test": the test positions, ...}``)."""
     robot, task = bank.world(name)
     after, _ = rollout(bank, robot, task, scenes)
     gaps = {
@@ -228,7 +231,7 @@ def bank_figures(bank: ModuleBank, name: str, data: dict, scenes: WorldEnv, test
         **gaps,
         "gap_own": own_gap(after, gains),
         "distance": round(float(scenes.final_distance(after).mean()), 4),
-        "distance_test": round(score(bank, robot, task, tests).mean, 4),
+        **{key: round(score(bank, robot, task, env).mean, 4) for key, env in tests.items()},
     }
 
 
@@ -274,6 +277,9 @@ def main() -> None:
             trainer.step()
         curve.append(round(score(trainer.bank, robot, task, test_positions).mean, 4))
     finetuned_s = time.perf_counter() - started
+    tests = {"distance_test": test_positions}
+    if run.eval.random_conditions > 0:  # built after the rerun, which repeats the run's curve
+        tests["distance_random"] = held_out_env(run, universe, split, random=True)
     (state,) = trainer.states.values()
     gains = state.controller.gains
     last = trainer.iteration - 1  # which policy drew the S-step's samples:
@@ -291,10 +297,10 @@ def main() -> None:
     world = trainer.bank.world(state.name)
     untouched, _ = rollout(trainer.bank, robot, task, scenes)  # any policy: the scenes' start
     by_obs = {part: (samples[part].obs, targets[part]) for part in samples}
-    networks = {"network": bank_figures(trainer.bank, state.name, by_obs, scenes, test_positions, gains)}
+    networks = {"network": bank_figures(trainer.bank, state.name, by_obs, scenes, tests, gains)}
     schedule = dict(steps=args.sgd_steps, seed=trainer.config.seed)
     refit = refitted(trainer.bank, world, samples["fit"].obs, flat["fit"], **schedule)
-    networks["network_refit"] = bank_figures(refit, state.name, by_obs, scenes, test_positions, gains)
+    networks["network_refit"] = bank_figures(refit, state.name, by_obs, scenes, tests, gains)
     by_inputs = {part: (inputs_of(samples[part].obs), flat[part]) for part in samples}
     M, T = state.sampler.num_conditions, state.sampler.horizon
     for seed, inputs in enumerate(INPUTS):
@@ -313,10 +319,11 @@ def main() -> None:
         policy = TensorDictModule(net, in_keys=[*STATE_KEYS, "condition", "step_count"], out_keys=["action"])
         networks[inputs] = {**gaps, **acting(scenes, policy, gains)}
         if not net.scene:  # the test positions are not among the conditions it knows
-            networks[inputs]["distance_test"] = round(score_policy(policy, test_positions), 4)
+            networks[inputs].update({key: round(score_policy(policy, env), 4) for key, env in tests.items()})
     for name, f in networks.items():
         gaps = f"gap {f['gap_fit']:.3f} (fresh samples {f['gap_fresh']:.3f}, own states {f['gap_own']:.3f})"
         test = f"; at the test positions {f['distance_test']:.3f}" if "distance_test" in f else ""
+        test += f", on random positions {f['distance_random']:.3f}" if "distance_random" in f else ""
         print(f"{name:18s} {gaps}  ends {f['distance']:.3f}{test}")
 
     out = {

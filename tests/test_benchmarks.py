@@ -499,7 +499,8 @@ def test_imitation_capacity_refits_the_networks_of_an_mdgps_fine_tuning(tiny_run
     assert out["fit_drawn_by"] == "controllers"  # the first iteration sampled the network
     assert set(out["networks"]) == {"network", "network_refit", "state", "state_time", "state_scene_time"}
     for name, figures in out["networks"].items():
-        tested = {"distance_test"} if name != "state_scene_time" else set()  # knows no test scene
+        known = name != "state_scene_time"  # which knows no test scene
+        tested = {"distance_test", "distance_random"} if known else set()
         assert set(figures) == {"gap_fit", "gap_fresh", "gap_own", "distance"} | tested
     network, refit = out["networks"]["network"], out["networks"]["network_refit"]
     assert network["distance_test"] == out["rerun_curve"][-1]
