@@ -499,8 +499,8 @@ def test_imitation_capacity_refits_the_networks_of_an_mdgps_fine_tuning(tiny_run
     assert out["fit_drawn_by"] == "controllers"  # the first iteration sampled the network
     assert set(out["networks"]) == {"network", "network_refit", "state", "state_time", "state_scene_time"}
     for name, figures in out["networks"].items():
-        known = name != "state_scene_time"  # which knows no test scene
-        tested = {"distance_test", "distance_random"} if known else set()
+        placed = name != "state_scene_time"  # that one knows only the training scenes
+        tested = {"distance_test", "distance_random"} if placed else set()
         assert set(figures) == {"gap_fit", "gap_fresh", "gap_own", "distance"} | tested
     network, refit = out["networks"]["network"], out["networks"]["network_refit"]
     assert network["distance_test"] == out["rerun_curve"][-1]
