@@ -143,6 +143,18 @@ def main() -> None:
         default=GPSConfig.pi2_kl,
         help="PI2, PILQR: the KL of each step's sample weights",
     )
+    parser.add_argument(
+        "--min-step-mult",
+        type=float,
+        default=GPSConfig.min_step_mult,
+        help="floor of the C-step's step multiplier (the GPS code's: 0.01)",
+    )
+    parser.add_argument(
+        "--max-step-mult",
+        type=float,
+        default=GPSConfig.max_step_mult,
+        help="cap of the C-step's step multiplier (the GPS code's: 10)",
+    )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--trace", action="store_true", help="where the object goes, per condition")
     args = parser.parse_args()
@@ -183,6 +195,8 @@ def main() -> None:
             sample_on_policy=args.sample_on_policy,
             c_step=args.c_step,
             pi2_kl=args.pi2_kl,
+            min_step_mult=args.min_step_mult,
+            max_step_mult=args.max_step_mult,
             badmm=BADMMConfig(**pull),
             **sgd,
         )
@@ -217,6 +231,7 @@ def main() -> None:
                 "c_step": args.c_step,
                 **({"pi2_kl": args.pi2_kl} if args.c_step != "lqr" else {}),
                 "max_policy_weight": config.badmm.max_policy_weight,
+                "step_mult_bounds": [config.min_step_mult, config.max_step_mult],
                 "evaluated_on": args.evaluate_on,
                 "width": bank.config.task_hidden[0],
                 "sgd_steps": config.sgd_steps,

@@ -241,6 +241,17 @@ def test_the_dynamics_ridge_reaches_every_fit(monkeypatch):
         small_config(dynamics_ridge=0.0)
 
 
+def test_the_step_multiplier_stays_within_its_bounds_and_bad_bounds_are_refused():
+    bounds = dict(min_step_mult=0.7, max_step_mult=0.7)
+    trainer = trainer_for(worlds=GRID[:1], **bounds, sgd_steps=10, initial_sgd_steps=10)
+    assert trainer.config.lqr().min_mult == trainer.config.lqr().max_mult == 0.7
+    history = [trainer.step()["three_link/reach_red"]["step_mult"] for _ in range(3)]
+    assert history[0] == 1.0 and history[1:] == pytest.approx([0.7, 0.7])  # adapted from the second on
+    for low, high in ((0.0, 1.0), (2.0, 1.0)):
+        with pytest.raises(ValueError, match="min_step_mult must be positive and at most gps.max_step_mult"):
+            GPSConfig(min_step_mult=low, max_step_mult=high)
+
+
 def test_eta_at_its_cap_raises_with_the_last_kl():
     trainer = trainer_for(worlds=GRID[:1], kl_step=1e-9, max_eta=1e-3)
     message = r"eta reached its cap 0.001 .*last KL .*world=three_link/reach_red"

@@ -101,6 +101,8 @@ class GPSConfig:
     #: ``smooth_noise``, whose default is 2.0); 0 draws white noise at every step
     noise_smoothing: float = 0.0
     kl_step: float = 1.0
+    #: bounds of the C-step's step multiplier (the GPS code's are 0.01 and 10; RESULTS,
+    #: "What did not match", measures its floor on three_link/reach)
     min_step_mult: float = 0.5
     max_step_mult: float = 3.0
     max_eta: float = 1e16
@@ -176,6 +178,11 @@ class GPSConfig:
                 raise ValueError(f"gps.{name} must be at least 1, got {getattr(self, name)}")
         if not self.kl_step > 0:
             raise ValueError(f"gps.kl_step must be positive, got {self.kl_step}")
+        if not 0 < self.min_step_mult <= self.max_step_mult:
+            raise ValueError(
+                "gps.min_step_mult must be positive and at most gps.max_step_mult, "
+                f"got {self.min_step_mult} and {self.max_step_mult}"
+            )
         if not self.dynamics_ridge > 0:
             raise ValueError(f"gps.dynamics_ridge must be positive, got {self.dynamics_ridge}")
         if self.noise_smoothing < 0:
