@@ -166,6 +166,17 @@ def test_gps_single_world_samples_the_network_from_the_second_iteration_with_sam
     assert on["controllers_distance"][1] != off["controllers_distance"][1]
 
 
+def test_gps_single_world_bounds_the_step_multiplier():
+    """``--min-step-mult``/``--max-step-mult`` reach the C-step's rule (adapted from the second
+    iteration on) and the JSON; bounds out of order are refused before any training."""
+    options = "--conditions 4 --samples 2 --iterations 2 --sgd-steps 9".split()
+    out = benchmark_lines("gps_single_world.py", *options, "--min-step-mult", "0.7", "--max-step-mult", "0.7")
+    mults = [float(line.split("step_mult=")[1].split()[0]) for line in out if line.startswith("iteration")]
+    assert mults == [1.0, 0.7] and json.loads(out[-1])["step_mult_bounds"] == [0.7, 0.7]
+    refusal = single_world_refusal("--min-step-mult", "2", "--max-step-mult", "1")
+    assert "gps.min_step_mult must be positive and at most gps.max_step_mult" in refusal
+
+
 @pytest.mark.parametrize("c_step", ["pi2", "pilqr"])
 def test_gps_single_world_runs_a_pi2_c_step_with_mdgps_and_refuses_it_with_badmm(c_step):
     options = "--algo mdgps --pi2-kl 0.5 --conditions 4 --samples 3 --iterations 2 --sgd-steps 9"
