@@ -59,6 +59,7 @@ from modnet.evaluate import _start_bank, rollout, score, start_config, training_
 from modnet.gps.controller import LinearGaussianGains
 from modnet.gps.lqr import lqr_forward
 from modnet.gps.trainer import C_STEPS, POLICY_LINEARIZATIONS, GPSTrainer
+from modnet.universes import Universe
 
 TRANSFERRED = ("composed", "wrong_task")
 
@@ -91,10 +92,12 @@ def predicted_distance(trainer: GPSTrainer, gains: LinearGaussianGains) -> float
     return float(world.task.distance(task_state)[:, -FINAL_STEPS:].mean(-1).mean())
 
 
-def start_trainer(run_dir: Path, run: RunConfig, results: dict, start: str, **options) -> GPSTrainer:
+def start_trainer(
+    run_dir: Path, run: RunConfig, universe: Universe, results: dict, start: str, **options
+) -> GPSTrainer:
     """The trainer ``run.py finetune=true`` fine-tunes ``start`` with (on the held-out world of the
-    finished run in ``run_dir``), with ``options`` replacing the run's fine-tuning GPS options."""
-    universe, _ = validate(run)
+    finished run in ``run_dir``, whose ``universe`` :func:`~modnet.config.validate` returned), with
+    ``options`` replacing the run's fine-tuning GPS options."""
     robot, task = results["holdout"].split("/")
     wrong_task = results["methods"]["wrong_task"]["task"] if "wrong_task" in results["methods"] else None
     config = start_config(dataclasses.replace(run.finetune_gps_config(), **options), start)
@@ -109,7 +112,8 @@ def first_iteration(
     fine-tuning GPS options (``kl_step``, ``policy_linearization``, ``algo``, ``c_step``), and
     the S-step regressing onto the C-step's controllers or (``s_step_onto="linearisation"``)
     onto the network's linearisation."""
-    trainer = start_trainer(run_dir, run, results, start, **options)
+    universe, split = validate(run)
+    trainer = start_trainer(run_dir, run, universe, results, start, **options)
     bank, config, (robot, task) = trainer.bank, trainer.config, results["holdout"].split("/")
     scenes = training_env(robot, task, config, horizon=results["horizon"], pixels=trainer.pixels)
     before = score(bank, robot, task, scenes)
@@ -133,7 +137,7 @@ def first_iteration(
     (diagnostics,) = trainer.step().values()
     (state,) = trainer.states.values()
     after, _ = rollout(bank, robot, task, scenes)
-    test_positions = held_out_env(run, *validate(run))
+    test_positions = held_out_env(run, universe, split)
     distances = {
         "network_before": before.mean,
         "linearisation": controller_distance(scenes, trainer, state.current.gains),

@@ -266,7 +266,7 @@ def main() -> None:
     test_positions = held_out_env(run, universe, split)
     scenes = training_env(robot, task, run.finetune_gps_config(), horizon=results["horizon"])
     try:
-        trainer = start_trainer(args.run_dir, run, results, args.start, **options)
+        trainer = start_trainer(args.run_dir, run, universe, results, args.start, **options)
     except ValueError as err:  # e.g. PI2 under a BADMM run, refused before any work
         parser.error(str(err))
 
