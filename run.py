@@ -66,6 +66,7 @@ NEWER_OPTIONS = {
     "gps.c_step": "lqr",
     "gps.pi2_kl": GPSConfig.pi2_kl,
     "gps.pi2_covariance_damping": GPSConfig.pi2_covariance_damping,
+    "gps.train_modules": "all",
 }
 
 

@@ -83,6 +83,10 @@ def test_overrides_reach_the_library_configs():
     assert (pi2.gps_config().algo, pi2.gps_config().c_step) == ("badmm", "lqr")  # training's own
     wider = composed("universe=tiny", "eval.finetune_num_conditions=8")
     assert wider.finetune_gps_config() == dataclasses.replace(wider.gps_config(), num_conditions=8)
+    robot_only = composed("universe=tiny", "eval.finetune_train_modules=robot")
+    by_robot = dataclasses.replace(robot_only.gps_config(), train_modules="robot")
+    assert robot_only.finetune_gps_config() == by_robot
+    assert robot_only.gps_config().train_modules == "all"  # training trains every module
 
 
 def test_a_pi2_c_step_under_badmm_is_refused_before_any_work_naming_the_fix():
@@ -92,6 +96,14 @@ def test_a_pi2_c_step_under_badmm_is_refused_before_any_work_naming_the_fix():
         with pytest.raises(ConfigError, match="use algo=mdgps"):
             validate(run)
     validate(composed("universe=tiny", "algo=mdgps", "gps.c_step=pi2"))
+
+
+def test_training_one_factors_modules_is_refused_for_a_monolithic_bank_before_any_work():
+    for override in ("gps.train_modules=task", "eval.finetune_train_modules=robot"):
+        run = composed("universe=tiny", "policy=monolithic", override)
+        with pytest.raises(ConfigError, match=r"train_modules=(task|robot) trains one factor's modules"):
+            validate(run)
+    validate(composed("universe=tiny", "eval.finetune_train_modules=robot"))
 
 
 def test_literal_choices_and_values_no_type_rules_out_fail_with_the_key():
@@ -114,6 +126,11 @@ def test_literal_choices_and_values_no_type_rules_out_fail_with_the_key():
         ("eval.finetune_kl_step", 0.0, r"eval\.finetune_kl_step=0\.0: gps\.kl_step must be positive"),
         ("eval.finetune_sgd_steps", 0, r"eval\.finetune_sgd_steps=0: gps\.sgd_steps must be at least 1"),
         ("eval.finetune_num_conditions", 2, r"eval\.finetune_num_conditions=2: gps\.num_conditions must"),
+        (
+            "eval.finetune_train_modules",
+            "arm",
+            r"eval\.finetune_train_modules=arm: gps\.train_modules must be one of all, task, robot",
+        ),
         ("gps.kl_step", -1.0, r"gps\.kl_step must be positive, got -1\.0"),
     ]:
         run = RunConfig(universe="tiny")

@@ -195,6 +195,9 @@ class EvalConfig:
             None: ``gps.c_step``. Not part of a checkpoint's identity.
         finetune_num_conditions: the scenes every fine-tuning start samples on the held-out
             world; None: ``gps.num_conditions``. Not part of a checkpoint's identity.
+        finetune_train_modules: which modules every fine-tuning start's S-step trains ("all",
+            "task" or "robot"; :class:`~modnet.gps.GPSConfig`'s ``train_modules``); None:
+            ``gps.train_modules``. Not part of a checkpoint's identity.
     """
 
     conditions: str = "test"
@@ -216,6 +219,7 @@ class EvalConfig:
     finetune_algo: str | None = None
     finetune_c_step: str | None = None
     finetune_num_conditions: int | None = None
+    finetune_train_modules: str | None = None
 
 
 #: the GPSConfig fields an ``eval.finetune_<field>`` sets for the fine-tuning starts alone
@@ -229,6 +233,7 @@ FINETUNE_GPS_OVERRIDES = (
     "algo",
     "c_step",
     "num_conditions",
+    "train_modules",
 )
 
 
@@ -288,8 +293,8 @@ class RunConfig:
         ``eval.finetune_samples_per_condition``, ``eval.finetune_kl_step``,
         ``eval.finetune_sgd_steps``, ``eval.finetune_dynamics_prior_per_condition``,
         ``eval.finetune_policy_linearization``, ``eval.finetune_algo``,
-        ``eval.finetune_c_step`` and ``eval.finetune_num_conditions`` when set, and sampling the policy with
-        ``eval.finetune_sample_on_policy``.
+        ``eval.finetune_c_step``, ``eval.finetune_num_conditions`` and ``eval.finetune_train_modules``
+        when set, and sampling the policy with ``eval.finetune_sample_on_policy``.
 
         Examples:
             >>> run = RunConfig(universe="tiny", eval=EvalConfig(finetune_samples_per_condition=20))
@@ -335,6 +340,15 @@ class RunConfig:
         self.pretrain_config()
         if self.bank.policy not in ("modular", "monolithic"):
             raise ConfigError(f"bank.policy must be 'modular' or 'monolithic', got {self.bank.policy!r}")
+        for key, config in (
+            ("gps.train_modules", self.gps_config()),
+            ("eval.finetune_train_modules", self.finetune_gps_config()),
+        ):
+            if self.bank.policy == "monolithic" and config.train_modules != "all":
+                raise ConfigError(
+                    f"{key}={config.train_modules} trains one factor's modules, and "
+                    "bank.policy=monolithic has one network per world: use all, or bank.policy=modular"
+                )
         if self.threads < 1:
             raise ConfigError(f"threads must be at least 1, got {self.threads}")
         if self.gps.iterations < 1:

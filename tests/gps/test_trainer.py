@@ -11,7 +11,7 @@ from tensordict import TensorDict
 
 import modnet.gps.trainer as trainer_module
 from modnet.bank import ModuleBank
-from modnet.evaluate import training_env
+from modnet.evaluate import evaluating, training_env
 from modnet.gps.errors import NumericalError
 from modnet.gps.trainer import GPSConfig, GPSTrainer
 from modnet.specs import TORQUE_LIMIT
@@ -250,6 +250,40 @@ def test_the_step_multiplier_stays_within_its_bounds_and_bad_bounds_are_refused(
     for low, high in ((0.0, 1.0), (2.0, 1.0)):
         with pytest.raises(ValueError, match="min_step_mult must be positive and at most gps.max_step_mult"):
             GPSConfig(min_step_mult=low, max_step_mult=high)
+
+
+@pytest.mark.parametrize("trained", ["robot", "task"])
+def test_the_s_step_trains_only_the_modules_of_the_factor_it_is_given(trained):
+    """``train_modules``: the other factor's modules get no gradient and act as before through
+    the S-steps (their input normalisation is refitted, which their first layer absorbs)."""
+    trainer = trainer_for(worlds=GRID[:1], train_modules=trained, sgd_steps=10, initial_sgd_steps=10)
+    parts = trainer.bank.parts(trainer.bank.world(*GRID[0]))
+    trainer.step()  # samples to run the modules on
+    obs = trainer.states["three_link/reach_red"].samples.obs.reshape(-1)[:64].clone()
+    obs["interface", "task"] = torch.randn(64, parts["task"].arch.outputs["interface", "task"])
+
+    def outputs() -> dict[str, torch.Tensor]:
+        """Each module on the same inputs (the robot module on a fixed interface)."""
+        with evaluating(trainer.bank):
+            return {factor: module(obs.clone()).get(module.out_keys[0]) for factor, module in parts.items()}
+
+    before = outputs()
+    for _ in range(2):
+        trainer.step()
+    after = outputs()
+    for factor, module in parts.items():
+        kept = torch.allclose(after[factor], before[factor], atol=1e-5)
+        assert kept == (factor != trained), factor
+        assert all(p.requires_grad == (factor == trained) for p in module.parameters()), factor
+
+
+def test_training_one_factor_of_a_monolithic_bank_is_refused():
+    bank = ModuleBank.build(ROBOTS[:1], TASKS[:1], seed=0, policy="monolithic")
+    refusal = "gps.train_modules='task': this bank's modules are one network per world; valid: all"
+    with pytest.raises(ValueError, match=refusal):
+        GPSTrainer(bank, GRID[:1], small_config(train_modules="task"))
+    with pytest.raises(ValueError, match="gps.train_modules must be one of all, task, robot, got 'arm'"):
+        small_config(train_modules="arm")
 
 
 def test_eta_at_its_cap_raises_with_the_last_kl():

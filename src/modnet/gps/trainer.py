@@ -78,6 +78,8 @@ PIXEL_ROWS_PER_PASS = 32
 
 POLICY_LINEARIZATIONS = ("regression", "jacobian")
 C_STEPS = ("lqr", "pi2", "pilqr")
+#: what ``GPSConfig.train_modules`` may name: every module, or those of one factor of a modular bank
+TRAIN_MODULES = ("all", "task", "robot")
 
 
 @dataclass
@@ -138,6 +140,12 @@ class GPSConfig:
     #: True (the paper's visuomotor training) trains them end to end, and on a few training
     #: scenes they can unlearn an object elsewhere (RESULTS, section 1; ``benchmarks/probe_vision.py``)
     train_convolutions: bool = True
+    #: which of the bank's modules the S-step trains: "all", or the modules of one factor only
+    #: ("task" or "robot"; the others keep their weights, and the trainer sets
+    #: ``requires_grad=False`` on them, which stays so after it). Fine-tuning sets it with
+    #: ``eval.finetune_train_modules``: does the held-out world's robot module, or its task
+    #: module, carry what the composition lacks? (RESULTS, section 2)
+    train_modules: str = "all"
     #: regress the network onto the controllers' actions clipped to the torque limits the arms
     #: apply, instead of onto their unclipped means (the GPS code's): about a quarter of the
     #: reaching controllers' mean torques ask for more than the limit, where any action beyond
@@ -195,6 +203,10 @@ class GPSConfig:
             raise ValueError(
                 f"gps.policy_linearization must be one of {', '.join(POLICY_LINEARIZATIONS)}, "
                 f"got {self.policy_linearization!r}"
+            )
+        if self.train_modules not in TRAIN_MODULES:
+            raise ValueError(
+                f"gps.train_modules must be one of {', '.join(TRAIN_MODULES)}, got {self.train_modules!r}"
             )
         if self.c_step not in C_STEPS:
             raise ValueError(f"gps.c_step must be one of {', '.join(C_STEPS)}, got {self.c_step!r}")
@@ -328,6 +340,18 @@ class GPSTrainer:
         if not config.train_convolutions:
             for encoder in (m for m in bank.modules() if isinstance(m, PixelEncoder)):
                 encoder.requires_grad_(False)
+        if config.train_modules != "all":
+            factors = bank.world_factors
+            if bank.policy == "monolithic" or config.train_modules not in factors:
+                raise ValueError(
+                    f"gps.train_modules={config.train_modules!r}: this bank's modules are "
+                    + ("one network per world; valid: all" if bank.policy == "monolithic" else
+                       f"{', '.join(factors)}; valid: all, {', '.join(factors)}")
+                )
+            for factor in factors:
+                if factor != config.train_modules:
+                    for name in bank.names(factor):
+                        bank.get(factor, name).requires_grad_(False)
         trained = [p for p in bank.parameters() if p.requires_grad]
         self.optimizer = torch.optim.Adam(trained, lr=config.lr, weight_decay=config.weight_decay)
         self.history: list[dict[str, dict[str, float]]] = []
