@@ -144,7 +144,7 @@ class GPSConfig:
     #: ("task" or "robot"; the others keep their weights, and the trainer sets
     #: ``requires_grad=False`` on them, which stays so after it). Fine-tuning sets it with
     #: ``eval.finetune_train_modules``: does the held-out world's robot module, or its task
-    #: module, carry what the composition lacks? (RESULTS, section 2)
+    #: module, carry what the composition lacks? (RESULTS, "fine-tuning one module")
     train_modules: str = "all"
     #: regress the network onto the controllers' actions clipped to the torque limits the arms
     #: apply, instead of onto their unclipped means (the GPS code's): about a quarter of the
@@ -341,13 +341,15 @@ class GPSTrainer:
             for encoder in (m for m in bank.modules() if isinstance(m, PixelEncoder)):
                 encoder.requires_grad_(False)
         if config.train_modules != "all":
-            factors = bank.world_factors
-            if bank.policy == "monolithic" or config.train_modules not in factors:
+            if bank.policy == "monolithic":
                 raise ValueError(
-                    f"gps.train_modules={config.train_modules!r}: this bank's modules are "
-                    + ("one network per world; valid: all" if bank.policy == "monolithic" else
-                       f"{', '.join(factors)}; valid: all, {', '.join(factors)}")
+                    f"gps.train_modules={config.train_modules!r} trains one factor's modules, and this "
+                    "bank has one network per world: use all"
                 )
+            factors = bank.world_factors
+            if config.train_modules not in factors:
+                valid = ", ".join(("all", *factors))
+                raise ValueError(f"gps.train_modules={config.train_modules!r}: valid for this bank: {valid}")
             for factor in factors:
                 if factor != config.train_modules:
                     for name in bank.names(factor):
