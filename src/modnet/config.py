@@ -335,15 +335,13 @@ class RunConfig:
 
     def check(self) -> None:
         """Values no schema type can rule out; :class:`ConfigError` naming the key."""
-        self.finetune_gps_config()  # the training's GPS options, then fine-tuning's overrides
+        finetune = self.finetune_gps_config()  # the training's GPS options, then fine-tuning's overrides
         self.bank_config()
         self.pretrain_config()
         if self.bank.policy not in ("modular", "monolithic"):
             raise ConfigError(f"bank.policy must be 'modular' or 'monolithic', got {self.bank.policy!r}")
-        for key, config in (
-            ("gps.train_modules", self.gps_config()),
-            ("eval.finetune_train_modules", self.finetune_gps_config()),
-        ):
+        choices = (("gps.train_modules", self.gps_config()), ("eval.finetune_train_modules", finetune))
+        for key, config in choices:
             if self.bank.policy == "monolithic" and config.train_modules != "all":
                 raise ConfigError(
                     f"{key}={config.train_modules} trains one factor's modules, and "
