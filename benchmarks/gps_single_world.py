@@ -8,6 +8,7 @@
     python benchmarks/gps_single_world.py --task push --width 256 --sgd-steps 3000  # a larger network
     python benchmarks/gps_single_world.py --task push --algo mdgps --sample-on-policy  # on-policy MDGPS
     python benchmarks/gps_single_world.py --task push --conditions 4 --algo mdgps --c-step pilqr  # or pi2
+    python benchmarks/gps_single_world.py --clip-targets  # regress onto the torques the arm applies
 
 The distance is the task's (end-effector or object to goal) averaged over the last 5 steps
 of a deterministic rollout of the composed policy (not the local controllers) from each
@@ -20,7 +21,8 @@ iteration prints the trainer's diagnostics (``predicted_cost`` against the next 
 ``--trace`` adds, for the last iteration's samples, each training condition's end effector to
 object and object to goal distances (means over the samples) at a few time steps.
 The last line is one JSON object:
-``{"final_distance": [...], "success_distance": ..., "controllers_distance": [per iteration], ...}``.
+``{"final_distance": [...], "success_distance": ..., "controllers_distance": [per iteration],
+"controllers_final_distance": [per training condition, the last iteration's samples], ...}``.
 """
 
 from __future__ import annotations
@@ -155,6 +157,12 @@ def main() -> None:
         default=GPSConfig.max_step_mult,
         help="cap of the C-step's step multiplier (the GPS code's: 10)",
     )
+    parser.add_argument(
+        "--clip-targets",
+        action="store_true",
+        help="regress the network onto the torques the arm applies (clipped to its limits), "
+        "not the controllers' (gps.clip_targets)",
+    )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--trace", action="store_true", help="where the object goes, per condition")
     args = parser.parse_args()
@@ -197,6 +205,7 @@ def main() -> None:
             pi2_kl=args.pi2_kl,
             min_step_mult=args.min_step_mult,
             max_step_mult=args.max_step_mult,
+            clip_targets=args.clip_targets,
             badmm=BADMMConfig(**pull),
             **sgd,
         )
@@ -215,6 +224,7 @@ def main() -> None:
         diag = trainer.step()[name]
         print(f"iteration {i}: " + " ".join(f"{k}={v:.3g}" for k, v in diag.items()), flush=True)
     trace = last_samples_trace(trainer, args.robot, args.task) if args.trace else None
+    last = trainer.states[name].samples  # the last iteration's samples: the controllers per condition
     td, _ = rollout(bank, args.robot, args.task, env)
     distance = env.final_distance(td)
     start_distance = env.start_distance(td)
@@ -232,11 +242,13 @@ def main() -> None:
                 **({"pi2_kl": args.pi2_kl} if args.c_step != "lqr" else {}),
                 "max_policy_weight": config.badmm.max_policy_weight,
                 "step_mult_bounds": [config.min_step_mult, config.max_step_mult],
+                "clip_targets": config.clip_targets,
                 "evaluated_on": args.evaluate_on,
                 "width": bank.config.task_hidden[0],
                 "sgd_steps": config.sgd_steps,
                 "network_parameters": sum(p.numel() for p in bank.parameters()),
                 "controllers_distance": [round(h[name]["distance"], 4) for h in trainer.history],
+                "controllers_final_distance": [round(float(d), 4) for d in last.distance.mean(1)],
                 "final_distance": [round(float(d), 4) for d in distance],
                 "start_distance": [round(float(d), 4) for d in start_distance],
                 "closer": int((distance < start_distance - MOVED).sum()),

@@ -177,6 +177,24 @@ def test_gps_single_world_bounds_the_step_multiplier():
     assert "gps.min_step_mult must be positive and at most gps.max_step_mult" in refusal
 
 
+def test_gps_single_world_clips_the_targets_and_reports_the_controllers_per_condition():
+    """``--clip-targets`` reaches the S-step: the first samples are the same, the regression
+    onto clipped torques is not; the controllers' final distance per training condition
+    averages to the iteration's ``distance``."""
+    options = "--conditions 4 --samples 2 --iterations 1 --sgd-steps 9".split()
+    runs = []
+    for flags in ([], ["--clip-targets"]):
+        out = benchmark_lines("gps_single_world.py", *options, *flags)
+        first = next(line for line in out if line.startswith("iteration 0"))
+        runs.append((json.loads(out[-1]), first.split("regression_loss=")[1].split()[0]))
+    (off, off_loss), (on, on_loss) = runs
+    assert (off["clip_targets"], on["clip_targets"]) == (False, True)
+    assert on["controllers_distance"] == off["controllers_distance"] and on_loss != off_loss
+    for figures in (off, on):
+        per_condition, mean = figures["controllers_final_distance"], figures["controllers_distance"][-1]
+        assert len(per_condition) == 4 and np.mean(per_condition) == pytest.approx(mean, abs=1e-3)
+
+
 @pytest.mark.parametrize("c_step", ["pi2", "pilqr"])
 def test_gps_single_world_runs_a_pi2_c_step_with_mdgps_and_refuses_it_with_badmm(c_step):
     options = "--algo mdgps --pi2-kl 0.5 --conditions 4 --samples 3 --iterations 2 --sgd-steps 9"
