@@ -22,7 +22,8 @@ iteration prints the trainer's diagnostics (``predicted_cost`` against the next 
 object and object to goal distances (means over the samples) at a few time steps.
 The last line is one JSON object:
 ``{"final_distance": [...], "success_distance": ..., "controllers_distance": [per iteration],
-"controllers_final_distance": [per training condition, the last iteration's samples], ...}``.
+"controllers_final_distance": [per training condition, the last iteration's samples],
+"controllers_final_joints", "final_joints": [the arm's joint angles at the last step], ...}``.
 """
 
 from __future__ import annotations
@@ -36,6 +37,7 @@ import torch
 from modnet.bank import ModuleBank
 from modnet.evaluate import evaluation_env, rollout
 from modnet.gps.badmm import BADMMConfig
+from modnet.gps.sampling import state_of
 from modnet.gps.trainer import C_STEPS, GPSConfig, GPSTrainer
 from modnet.worlds import get_world, task_spec
 
@@ -225,6 +227,7 @@ def main() -> None:
         print(f"iteration {i}: " + " ".join(f"{k}={v:.3g}" for k, v in diag.items()), flush=True)
     trace = last_samples_trace(trainer, args.robot, args.task) if args.trace else None
     last = trainer.states[name].samples  # the last iteration's samples: the controllers per condition
+    joints = get_world(args.robot, args.task).robot.n_joints  # the robot state starts with its angles
     td, _ = rollout(bank, args.robot, args.task, env)
     distance = env.final_distance(td)
     start_distance = env.start_distance(td)
@@ -249,6 +252,8 @@ def main() -> None:
                 "network_parameters": sum(p.numel() for p in bank.parameters()),
                 "controllers_distance": [round(h[name]["distance"], 4) for h in trainer.history],
                 "controllers_final_distance": [round(float(d), 4) for d in last.distance.mean(1)],
+                "controllers_final_joints": last.X[:, :, -1, :joints].mean(1).round(decimals=3).tolist(),
+                "final_joints": state_of(td)[:, -1, :joints].round(decimals=3).tolist(),
                 "final_distance": [round(float(d), 4) for d in distance],
                 "start_distance": [round(float(d), 4) for d in start_distance],
                 "closer": int((distance < start_distance - MOVED).sum()),

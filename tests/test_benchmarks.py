@@ -193,6 +193,9 @@ def test_gps_single_world_clips_the_targets_and_reports_the_controllers_per_cond
     for figures in (off, on):
         per_condition, mean = figures["controllers_final_distance"], figures["controllers_distance"][-1]
         assert len(per_condition) == 4 and np.mean(per_condition) == pytest.approx(mean, abs=1e-3)
+        assert np.shape(figures["controllers_final_joints"]) == np.shape(figures["final_joints"]) == (4, 3)
+    start = get_world("three_link", "reach").conditions("test", 0)[:, :3]  # where the arm's joints start
+    assert not np.allclose(off["final_joints"], start, atol=0.05)  # the network moved the arm
 
 
 @pytest.mark.parametrize("c_step", ["pi2", "pilqr"])
