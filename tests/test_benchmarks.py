@@ -31,6 +31,9 @@ def last_json(*args: str, timeout: float = 600) -> dict:
 
 @pytest.mark.slow
 def test_gps_on_one_world_brings_the_policy_within_the_success_distance():
+    """Issue 4's check, at seed 0 and the defaults. On the AMD EPYC of the later sessions it
+    fails at test position 4: it rests on two wide-swing training scenes (RESULTS, "What did
+    not match", "Which scenes decide it"), and we neither pick a seed nor change a default."""
     figures = last_json("gps_single_world.py", "--robot", "three_link", "--task", "reach", timeout=1200)
     assert len(figures["final_distance"]) == 4
     assert max(figures["final_distance"]) < figures["success_distance"], figures
