@@ -183,7 +183,8 @@ def test_gps_single_world_bounds_the_step_multiplier():
 def test_gps_single_world_clips_the_targets_and_reports_the_controllers_per_condition():
     """``--clip-targets`` reaches the S-step: the first samples are the same, the regression
     onto clipped torques is not; the controllers' final distance per training condition
-    averages to the iteration's ``distance``."""
+    averages to the iteration's ``distance``; the final joint angles come one row per
+    condition, and the network's are not where the arm started."""
     options = "--conditions 4 --samples 2 --iterations 1 --sgd-steps 9".split()
     runs = []
     for flags in ([], ["--clip-targets"]):
