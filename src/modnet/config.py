@@ -35,7 +35,7 @@ from modnet.envs import WorldEnv
 from modnet.evaluate import FINETUNE_STARTS, evaluation_env
 from modnet.gps.badmm import BADMMConfig
 from modnet.gps.dynamics import DynamicsPriorConfig
-from modnet.gps.trainer import GPSConfig
+from modnet.gps.trainer import GPSConfig, check_train_modules
 from modnet.pretrain import PretrainConfig
 from modnet.universes import Split, Universe, get_universe
 from modnet.worlds import CONDITION_SETS, NUM_FIXED_CONDITIONS
@@ -341,12 +341,11 @@ class RunConfig:
         if self.bank.policy not in ("modular", "monolithic"):
             raise ConfigError(f"bank.policy must be 'modular' or 'monolithic', got {self.bank.policy!r}")
         choices = (("gps.train_modules", self.gps_config()), ("eval.finetune_train_modules", finetune))
-        for key, config in choices:
-            if self.bank.policy == "monolithic" and config.train_modules != "all":
-                raise ConfigError(
-                    f"{key}={config.train_modules} trains one factor's modules, and "
-                    "bank.policy=monolithic has one network per world: use all, or bank.policy=modular"
-                )
+        for key, config in choices:  # the trainer refuses it too, but only after the training
+            try:
+                check_train_modules(config.train_modules, self.bank.policy, key)
+            except ValueError as err:
+                raise ConfigError(str(err)) from err
         if self.threads < 1:
             raise ConfigError(f"threads must be at least 1, got {self.threads}")
         if self.gps.iterations < 1:

@@ -279,7 +279,7 @@ def test_the_s_step_trains_only_the_modules_of_the_factor_it_is_given(trained):
 
 def test_training_one_factor_of_a_monolithic_bank_is_refused():
     bank = ModuleBank.build(ROBOTS[:1], TASKS[:1], seed=0, policy="monolithic")
-    refusal = "gps.train_modules='task' trains one factor's modules, and this bank has one network per world"
+    refusal = "gps.train_modules=task trains one factor's modules, and bank.policy=monolithic has one network"
     with pytest.raises(ValueError, match=refusal):
         GPSTrainer(bank, GRID[:1], small_config(train_modules="task"))
     with pytest.raises(ValueError, match="gps.train_modules must be one of all, task, robot, got 'arm'"):

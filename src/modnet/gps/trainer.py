@@ -82,6 +82,24 @@ C_STEPS = ("lqr", "pi2", "pilqr")
 TRAIN_MODULES = ("all", "task", "robot")
 
 
+def check_train_modules(train_modules: str, policy: str, key: str = "gps.train_modules") -> None:
+    """Refuse to train one factor's modules of a monolithic bank (``policy``), which has one
+    network per world; ``key`` names the option in the message.
+
+    Examples:
+        >>> check_train_modules("robot", "modular")
+        >>> check_train_modules("robot", "monolithic")
+        Traceback (most recent call last):
+        ...
+        ValueError: gps.train_modules=robot trains one factor's modules, and bank.policy=monolithic ...
+    """
+    if policy == "monolithic" and train_modules != "all":
+        raise ValueError(
+            f"{key}={train_modules} trains one factor's modules, and bank.policy=monolithic has one "
+            "network per world: use all, or bank.policy=modular"
+        )
+
+
 @dataclass
 class GPSConfig:
     """Options of a GPS run (defaults: GPS code and the paper, sized for a 2-core laptop)."""
@@ -340,12 +358,8 @@ class GPSTrainer:
         if not config.train_convolutions:
             for encoder in (m for m in bank.modules() if isinstance(m, PixelEncoder)):
                 encoder.requires_grad_(False)
+        check_train_modules(config.train_modules, bank.policy)
         if config.train_modules != "all":
-            if bank.policy == "monolithic":
-                raise ValueError(
-                    f"gps.train_modules={config.train_modules!r} trains one factor's modules, and this "
-                    "bank has one network per world: use all"
-                )
             factors = bank.world_factors
             if config.train_modules not in factors:
                 valid = ", ".join(("all", *factors))
