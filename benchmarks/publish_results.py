@@ -20,6 +20,13 @@ the paper's numbers where the paper has that experiment.  The last line is the w
 the same command but for ``seed=``) and draws ``docs/<experiment>_vs_paper.png``: at the 4 test
 positions the paper's bars beside ours (each seed a dot, the bar their mean), and on the random
 positions each seed's mean with its 95% interval.  Its last line is a JSON summary of what it drew.
+
+``finetune-figure`` reads published fine-tuning JSON files (the seeds of one or more experiments)
+and draws ``docs/<experiment>.png``: per experiment, every start's samples on the training
+conditions and its network at the test positions, iteration by iteration, at each seed:
+
+    python benchmarks/publish_results.py finetune-figure docs/results/manipulation_*_4scenes_*.json \
+        --experiment manipulation_finetune_4scenes
 """
 
 from __future__ import annotations
@@ -28,12 +35,13 @@ import argparse
 import json
 import shlex
 import shutil
+import textwrap
 from pathlib import Path
 
 import numpy as np
 import yaml
 from matplotlib.figure import Figure
-from matplotlib.ticker import FormatStrFormatter, LogLocator, NullFormatter
+from matplotlib.ticker import FormatStrFormatter, LogLocator, MaxNLocator, NullFormatter
 
 from modnet.aggregate import collect, write_heatmap
 from modnet.files import write_atomically
@@ -431,9 +439,82 @@ def paper_figure(published: list[dict]) -> tuple[Figure, dict]:
     return fig, summary
 
 
+#: each fine-tuning start's colour, as in every run's ``finetune.png`` (matplotlib's cycle, in
+#: ``modnet.evaluate.FINETUNE_STARTS`` order)
+START_COLORS = {"composed": "C0", "wrong_task": "C1", "scratch_shaping": "C2", "scratch_no_shaping": "C3"}
+
+
+def _first_below(curve: list[float], bound: float, offset: int) -> int | None:
+    """The iteration (entry i is iteration i + ``offset``) of the first entry below ``bound``."""
+    return next((i + offset for i, d in enumerate(curve) if d < bound), None)
+
+
+def finetune_figure(published: list[dict]) -> tuple[Figure, dict]:
+    """Fine-tuning runs (published JSON, see :func:`finetuning`), grouped into experiments by
+    their command less the seed: one column per experiment, each start's curve at every seed
+    (thin) and their median (thick, with several seeds). Top, the distance of each iteration's
+    samples on the world's training conditions (the controllers, as they explore); bottom, the
+    network's mean distance at the test positions (0: before fine-tuning). The summary gives,
+    per experiment and start, the first iteration below the success distance at each seed that
+    ran the start (seed -> iteration; None: never), for the samples and for the network.
+    Raises ``ValueError`` for a repeated seed within an experiment, or runs that recorded no
+    samples' distances.
+    """
+    if not published:
+        raise ValueError("no published results to draw")
+    groups: dict[str, list[dict]] = {}
+    for p in published:
+        if not p["finetune"].get("sampled"):
+            raise ValueError(f"seed {p['seed']} of {p['command']!r} recorded no samples' distances")
+        groups.setdefault(_experiment_of(p["command"]), []).append(p)
+    for experiment, runs in groups.items():
+        seeds = [p["seed"] for p in runs]
+        if len(set(seeds)) < len(seeds):
+            raise ValueError(f"a seed is given twice for {experiment!r}: {seeds}")
+        runs.sort(key=lambda p: p["seed"])
+    options = {experiment: experiment.split() for experiment in groups}
+    common = [o for o in next(iter(options.values())) if all(o in opts for opts in options.values())]
+
+    fig = Figure(figsize=(5 * len(groups) + 0.5, 7), layout="constrained")
+    axes = fig.subplots(2, len(groups), squeeze=False, sharey="row")
+    summary = {}
+    for column, (experiment, runs) in enumerate(groups.items()):
+        success = runs[0]["success_distance"]
+        name = " ".join(o for o in options[experiment] if o not in common) or "(no further options)"
+        found: dict[str, dict[str, list]] = {}
+        for row, (key, offset) in enumerate((("sampled", 1), ("curves", 0))):
+            ax = axes[row, column]
+            for start, colour in START_COLORS.items():
+                drawn = [p for p in runs if start in p["finetune"][key]]
+                curves = [p["finetune"][key][start] for p in drawn]
+                if not curves:
+                    continue
+                for curve in curves:
+                    ax.plot(range(offset, offset + len(curve)), curve, color=colour, lw=0.7, alpha=0.4)
+                if len(curves) > 1 and len({len(c) for c in curves}) == 1:
+                    median = np.median(np.array(curves), 0)
+                    ax.plot(range(offset, offset + len(median)), median, color=colour, lw=2.2)
+                ax.plot([], [], color=colour, lw=2.2, label=start.replace("_", " "))
+                where = "samples" if key == "sampled" else "network"
+                found.setdefault(start, {})[where] = {
+                    p["seed"]: _first_below(c, success, offset) for p, c in zip(drawn, curves, strict=True)
+                }
+            ax.axhline(success, color="k", lw=0.8, ls="--", label="success distance")
+            ax.set_xlabel("GPS iteration on the held-out world")
+            ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+        seeds = [p["seed"] for p in runs]
+        axes[0, column].set_title(f"{name}\nseeds {', '.join(map(str, seeds))}", fontsize="small")
+        summary[name] = {"seeds": seeds, "first_success": found}
+    axes[0, 0].set_ylabel("samples, training conditions")
+    axes[1, 0].set_ylabel("network, test positions")
+    axes[0, 0].legend(fontsize="x-small")
+    fig.suptitle(textwrap.fill(" ".join(common), 160), fontsize="x-small")
+    return fig, {"success_distance": published[0]["success_distance"], "experiments": summary}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("kind", choices=["zero-shot", "lowo", "algorithms", "figure"])
+    parser.add_argument("kind", choices=["zero-shot", "lowo", "algorithms", "figure", "finetune-figure"])
     parser.add_argument(
         "paths",
         type=Path,
@@ -451,6 +532,17 @@ def main() -> None:
         except (OSError, ValueError) as error:
             parser.error(f"figure: {error}")
         path = args.docs / f"{args.experiment}_vs_paper.png"
+        write_atomically(path, lambda tmp: fig.savefig(tmp, format="png", dpi=120))
+        print(json.dumps({"figure": str(path), **summary}))
+        return
+    if args.kind == "finetune-figure":
+        try:
+            fig, summary = finetune_figure([json.loads(path.read_text()) for path in args.paths])
+        except KeyError as error:
+            parser.error(f"finetune-figure: a file is not a published fine-tuning result (it has no {error})")
+        except (OSError, ValueError) as error:
+            parser.error(f"finetune-figure: {error}")
+        path = args.docs / f"{args.experiment}.png"
         write_atomically(path, lambda tmp: fig.savefig(tmp, format="png", dpi=120))
         print(json.dumps({"figure": str(path), **summary}))
         return

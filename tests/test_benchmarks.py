@@ -541,3 +541,51 @@ def test_imitation_capacity_refits_the_networks_of_an_mdgps_fine_tuning(tiny_run
     network, refit = out["networks"]["network"], out["networks"]["network_refit"]
     assert network["distance_test"] == out["rerun_curve"][-1]
     assert refit["gap_fit"] < network["gap_fit"], out["networks"]
+
+
+def published_finetuning(seed: int, sampled: dict, curves: dict, command_extra: str = "") -> dict:
+    """A docs/results JSON of one manipulation fine-tuning seed, as publish_results.py zero-shot
+    writes it (only what finetune-figure reads)."""
+    return {
+        "seed": seed,
+        "command": f"python run.py universe=manipulation finetune=true{command_extra} seed={seed}",
+        "success_distance": 0.05,
+        "finetune": {"curves": curves, "sampled": sampled},
+    }
+
+
+def test_finetune_figure_groups_seeds_into_experiments_and_finds_each_starts_first_success(tmp_path):
+    publish = load_benchmark("publish_results")
+    runs = [
+        # entry i of "sampled" is iteration i + 1's samples; of "curves", the network after i iterations
+        published_finetuning(1, {"composed": [0.1, 0.04]}, {"composed": [0.15, 0.06, 0.04]}),
+        published_finetuning(0, {"composed": [0.03, 0.02]}, {"composed": [0.15, 0.15, 0.15]}),
+        published_finetuning(
+            0, {"composed": [0.1, 0.1], "scratch_shaping": [0.1, 0.01]}, {"composed": [0.15] * 3}, " c=pi2"
+        ),
+    ]
+    fig, summary = publish.finetune_figure(runs)
+    default, pi2 = summary["experiments"]["(no further options)"], summary["experiments"]["c=pi2"]
+    assert default["seeds"] == [0, 1]  # sorted within the experiment
+    assert default["first_success"]["composed"] == {"samples": {0: 1, 1: 2}, "network": {0: None, 1: 2}}
+    assert pi2["first_success"]["scratch_shaping"] == {"samples": {0: 2}}  # it has no network curve
+    assert len(fig.axes) == 4  # samples above, the network below, one column per experiment
+    # at two seeds of the same length a thick median is drawn beside each seed's thin line
+    assert [line.get_linewidth() for line in fig.axes[0].get_lines()][:3] == [0.7, 0.7, 2.2]
+
+    bad = [published_finetuning(0, {}, {"composed": [0.15]})]
+    with pytest.raises(ValueError, match="recorded no samples"):
+        publish.finetune_figure(bad)
+    with pytest.raises(ValueError, match="a seed is given twice"):
+        publish.finetune_figure([runs[0], runs[0]])
+    path = tmp_path / "not_finetuning.json"
+    path.write_text(json.dumps(published_run(0, [0.1] * 4)))
+    done = run_script(BENCHMARKS / "publish_results.py", "finetune-figure", str(path), "--experiment", "x",
+                      "--docs", str(tmp_path))
+    assert done.returncode == 2 and "not a published fine-tuning result" in done.stderr, done.stderr
+    path.write_text(json.dumps(runs[1]))
+    done = run_script(BENCHMARKS / "publish_results.py", "finetune-figure", str(path), "--experiment", "x",
+                      "--docs", str(tmp_path))
+    assert done.returncode == 0, done.stderr
+    assert json.loads(done.stdout.splitlines()[-1])["figure"] == str(tmp_path / "x.png")
+    assert (tmp_path / "x.png").read_bytes().startswith(b"\x89PNG")
