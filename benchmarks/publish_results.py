@@ -512,9 +512,16 @@ def finetune_figure(published: list[dict]) -> tuple[Figure, dict]:
     return fig, {"success_distance": published[0]["success_distance"], "experiments": summary}
 
 
+#: the kinds that draw published JSON files: what draws them, what each file must be, the PNG's name
+FIGURES = {
+    "figure": (paper_figure, "a published zero-shot result", "{}_vs_paper.png"),
+    "finetune-figure": (finetune_figure, "a published fine-tuning result", "{}.png"),
+}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("kind", choices=["zero-shot", "lowo", "algorithms", "figure", "finetune-figure"])
+    parser.add_argument("kind", choices=["zero-shot", "lowo", "algorithms", *FIGURES])
     parser.add_argument(
         "paths",
         type=Path,
@@ -524,25 +531,15 @@ def main() -> None:
     parser.add_argument("--experiment", required=True, help="the name under docs/results/")
     parser.add_argument("--docs", type=Path, default=DOCS, help="the docs directory to write into")
     args = parser.parse_args()
-    if args.kind == "figure":
+    if args.kind in FIGURES:
+        draw, what, name = FIGURES[args.kind]
         try:
-            fig, summary = paper_figure([json.loads(path.read_text()) for path in args.paths])
+            fig, summary = draw([json.loads(path.read_text()) for path in args.paths])
         except KeyError as error:
-            parser.error(f"figure: a file is not a published zero-shot result (it has no {error})")
+            parser.error(f"{args.kind}: a file is not {what} (it has no {error})")
         except (OSError, ValueError) as error:
-            parser.error(f"figure: {error}")
-        path = args.docs / f"{args.experiment}_vs_paper.png"
-        write_atomically(path, lambda tmp: fig.savefig(tmp, format="png", dpi=120))
-        print(json.dumps({"figure": str(path), **summary}))
-        return
-    if args.kind == "finetune-figure":
-        try:
-            fig, summary = finetune_figure([json.loads(path.read_text()) for path in args.paths])
-        except KeyError as error:
-            parser.error(f"finetune-figure: a file is not a published fine-tuning result (it has no {error})")
-        except (OSError, ValueError) as error:
-            parser.error(f"finetune-figure: {error}")
-        path = args.docs / f"{args.experiment}.png"
+            parser.error(f"{args.kind}: {error}")
+        path = args.docs / name.format(args.experiment)
         write_atomically(path, lambda tmp: fig.savefig(tmp, format="png", dpi=120))
         print(json.dumps({"figure": str(path), **summary}))
         return
