@@ -481,7 +481,7 @@ def finetune_figure(published: list[dict]) -> tuple[Figure, dict]:
     for column, (experiment, runs) in enumerate(groups.items()):
         success = runs[0]["success_distance"]
         name = " ".join(o for o in options[experiment] if o not in common) or "(no further options)"
-        found: dict[str, dict[str, list]] = {}
+        found: dict[str, dict[str, dict[int, int | None]]] = {}
         for row, (key, offset) in enumerate((("sampled", 1), ("curves", 0))):
             ax = axes[row, column]
             for start, colour in START_COLORS.items():
