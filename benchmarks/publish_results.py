@@ -503,7 +503,8 @@ def finetune_figure(published: list[dict]) -> tuple[Figure, dict]:
             ax.set_xlabel("GPS iteration on the held-out world")
             ax.xaxis.set_major_locator(MaxNLocator(integer=True))
         seeds = [p["seed"] for p in runs]
-        axes[0, column].set_title(f"{name}\nseeds {', '.join(map(str, seeds))}", fontsize="small")
+        title = f"{textwrap.fill(name, 60)}\nseeds {', '.join(map(str, seeds))}"
+        axes[0, column].set_title(title, fontsize="small")
         summary[name] = {"seeds": seeds, "first_success": found}
     axes[0, 0].set_ylabel("samples, training conditions")
     axes[1, 0].set_ylabel("network, test positions")
