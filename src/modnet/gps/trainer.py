@@ -342,6 +342,7 @@ class GPSTrainer:
                 "gps.policy_linearization=jacobian needs a policy that reads the state; this one "
                 "reads images: use regression"
             )
+        check_train_modules(config.train_modules, bank.policy)
         for world in worlds:
             bank.parts(bank.world(*world))  # fails early, naming what is missing
         torch.manual_seed(config.seed)
@@ -358,7 +359,6 @@ class GPSTrainer:
         if not config.train_convolutions:
             for encoder in (m for m in bank.modules() if isinstance(m, PixelEncoder)):
                 encoder.requires_grad_(False)
-        check_train_modules(config.train_modules, bank.policy)
         if config.train_modules != "all":
             factors = bank.world_factors
             if config.train_modules not in factors:
