@@ -87,11 +87,15 @@ def test_overrides_reach_the_library_configs():
     by_robot = dataclasses.replace(robot_only.gps_config(), train_modules="robot")
     assert robot_only.finetune_gps_config() == by_robot
     assert robot_only.gps_config().train_modules == "all"  # training trains every module
+    dagger = composed("universe=tiny", "algo=mdgps", "eval.finetune_relabel_policy_states=true")
+    assert dagger.finetune_gps_config() == dataclasses.replace(dagger.gps_config(), relabel_policy_states=True)
+    assert not dagger.gps_config().relabel_policy_states  # training imitates at the controllers' samples
 
 
-def test_a_pi2_c_step_under_badmm_is_refused_before_any_work_naming_the_fix():
+def test_mdgps_only_options_under_badmm_are_refused_before_any_work_naming_the_fix():
     refused = (["gps.c_step=pi2", "algo=badmm"], ["algo=badmm", "eval.finetune_c_step=pi2"])
-    for overrides in (*refused, ["algo=badmm", "eval.finetune_c_step=pilqr"]):
+    relabelled = ["algo=badmm", "eval.finetune_relabel_policy_states=true"]
+    for overrides in (*refused, ["algo=badmm", "eval.finetune_c_step=pilqr"], relabelled):
         run = composed("universe=tiny", *overrides)
         with pytest.raises(ConfigError, match="use algo=mdgps"):
             validate(run)

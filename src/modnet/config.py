@@ -198,6 +198,10 @@ class EvalConfig:
         finetune_train_modules: which modules every fine-tuning start's S-step trains ("all",
             "task" or "robot"; :class:`~modnet.gps.GPSConfig`'s ``train_modules``); None:
             ``gps.train_modules``. Not part of a checkpoint's identity.
+        finetune_relabel_policy_states: every fine-tuning start's S-step also imitates the
+            controllers at the states the network visits acting alone (True; DAgger's
+            relabelling, :class:`~modnet.gps.GPSConfig`'s ``relabel_policy_states``, MDGPS only);
+            None: ``gps.relabel_policy_states``. Not part of a checkpoint's identity.
     """
 
     conditions: str = "test"
@@ -220,6 +224,7 @@ class EvalConfig:
     finetune_c_step: str | None = None
     finetune_num_conditions: int | None = None
     finetune_train_modules: str | None = None
+    finetune_relabel_policy_states: bool | None = None
 
 
 #: the GPSConfig fields an ``eval.finetune_<field>`` sets for the fine-tuning starts alone
@@ -234,6 +239,7 @@ FINETUNE_GPS_OVERRIDES = (
     "c_step",
     "num_conditions",
     "train_modules",
+    "relabel_policy_states",
 )
 
 
@@ -293,8 +299,8 @@ class RunConfig:
         ``eval.finetune_samples_per_condition``, ``eval.finetune_kl_step``,
         ``eval.finetune_sgd_steps``, ``eval.finetune_dynamics_prior_per_condition``,
         ``eval.finetune_policy_linearization``, ``eval.finetune_algo``,
-        ``eval.finetune_c_step``, ``eval.finetune_num_conditions`` and ``eval.finetune_train_modules``
-        when set, and sampling the policy with ``eval.finetune_sample_on_policy``.
+        ``eval.finetune_c_step``, ``eval.finetune_num_conditions``, ``eval.finetune_train_modules``
+        and ``eval.finetune_relabel_policy_states`` when set, and sampling the policy with ``eval.finetune_sample_on_policy``.
 
         Examples:
             >>> run = RunConfig(universe="tiny", eval=EvalConfig(finetune_samples_per_condition=20))

@@ -13,7 +13,9 @@ One :meth:`GPSTrainer.step` is one GPS iteration:
    ``c_step="pilqr"`` (MDGPS), the LQR's step then PI2 on the cost its model misses;
 5. **S-step**: SGD on the sum over worlds of the precision-weighted regression of each
    world's composed policy onto its controllers (:class:`~modnet.gps.loss.PolicyRegressionLoss`),
-   then the policy's diagonal covariance is fitted.
+   then the policy's diagonal covariance is fitted. With ``relabel_policy_states`` (MDGPS)
+   the composed policy is also rolled out alone, and the states it visits, labelled with the
+   controllers' actions, join the regression (DAgger).
 
 Examples:
     >>> from modnet.bank import ModuleBank
@@ -190,6 +192,13 @@ class GPSConfig:
     #: ``sample_on_policy``, near the policy itself. Off by default (RESULTS, "a model-free
     #: C-step", "PILQR")
     c_step: Literal["lqr", "pi2", "pilqr"] = "lqr"
+    #: MDGPS: after each C-step, also roll the composed policy out alone (N times per condition,
+    #: with its own noise) and add the states it visits, labelled with the new controllers' mean
+    #: actions there, to the S-step's training set (DAgger's relabelling, Ross et al. 2011). The
+    #: controllers' samples alone show the network a narrow tube of states, and acting alone it
+    #: leaves it (RESULTS, "the authors' fine-tuning protocol"). Doubles the samples drawn.
+    #: Off by default (RESULTS, "relabelling the network's own states")
+    relabel_policy_states: bool = False
     #: PI2 and PILQR: the KL from uniform of each step's sample weights (the GPS code's ``kl_threshold``;
     #: at most log N, all weight on the best sample)
     pi2_kl: float = 1.0
@@ -232,6 +241,12 @@ class GPSConfig:
             raise ValueError(
                 f"gps.c_step={self.c_step} is an MDGPS C-step (BADMM's adds dual terms PI2 cannot "
                 "weigh): use algo=mdgps, or gps.c_step=lqr"
+            )
+        if self.relabel_policy_states and self.algo != "mdgps":
+            raise ValueError(
+                "gps.relabel_policy_states labels the network's states with the controllers' actions, "
+                "an MDGPS S-step (BADMM's targets carry dual terms fitted at the controllers' samples): "
+                "use algo=mdgps"
             )
         if not (self.pi2_kl > 0 and self.pi2_covariance_damping > 0):
             raise ValueError(
@@ -487,15 +502,7 @@ class GPSTrainer:
         PILQR expand the cost and fit the dynamics (PI2 needs neither: a fifth of its iteration)."""
         c, world = self.config, state.sampler.world
         with self._timed("sampling"):
-            self.bank.eval()  # no dropout when a composed policy acts
-            samples = state.sampler.sample(policy or state.controller)
-            self.bank.train()
-        trajectories = state.sampler.env.batch_size[0]
-        self.drawn["trajectories"] += trajectories
-        self.drawn["env_steps"] += trajectories * state.sampler.horizon
-        for name, value in (("sampled states", samples.X), ("sampled actions", samples.U)):
-            # condition-major [M, ...], so the error names the condition
-            check_finite(name, value, world=state.name, iteration=self.iteration)
+            samples = self._draw(state, policy or state.controller)
         with self._timed("cost"):
             weights = time_weights(state.sampler.horizon, c.cost_ramp, c.final_cost_multiplier)
             with torch.no_grad():
@@ -525,6 +532,19 @@ class GPSTrainer:
             "sampled_cost": float(sampled.mean()),
             "distance": float(samples.distance.mean()),
         }
+
+    def _draw(self, state: WorldState, actor) -> Samples:
+        """One batch of N trajectories per condition from ``actor``, counted in :attr:`samples`."""
+        self.bank.eval()  # no dropout when a composed policy acts
+        samples = state.sampler.sample(actor)
+        self.bank.train()
+        trajectories = state.sampler.env.batch_size[0]
+        self.drawn["trajectories"] += trajectories
+        self.drawn["env_steps"] += trajectories * state.sampler.horizon
+        for name, value in (("sampled states", samples.X), ("sampled actions", samples.U)):
+            # condition-major [M, ...], so the error names the condition
+            check_finite(name, value, world=state.name, iteration=self.iteration)
+        return samples
 
     def _update_dynamics_prior(self, state: WorldState, samples: Samples) -> None:
         where = dict(world=state.name, iteration=self.iteration)
@@ -619,12 +639,15 @@ class GPSTrainer:
         gap = state.current.gains.mean_actions(state.samples.X) - state.policy_mean
         state.diagnostics["action_gap"] = float(gap.norm(dim=-1).mean())
 
-    def _forward_samples(self, states: Sequence[WorldState]) -> list[TensorDictBase]:
-        """The bank's outputs at every world's samples ``[M, N, T]``: one pass from states;
-        from images ``PIXEL_ROWS_PER_PASS`` rows per world at a time (a whole iteration's
-        activations would take gigabytes, and large passes are slower per image)."""
+    def _forward_samples(self, states: Sequence[WorldState], obs: Sequence[TensorDictBase] | None = None):
+        """The bank's outputs at every world's samples ``[M, N, T]`` (or at ``obs``, one per
+        world): one pass from states; from images ``PIXEL_ROWS_PER_PASS`` rows per world at a
+        time (a whole iteration's activations would take gigabytes, and large passes are
+        slower per image)."""
+        obs = [s.samples.obs for s in states] if obs is None else obs
         rows = PIXEL_ROWS_PER_PASS if self.pixels else None
-        out = self.bank.forward_worlds({s.name: s.samples.obs for s in states}, rows_per_pass=rows)
+        batches = {s.name: o for s, o in zip(states, obs, strict=True)}
+        out = self.bank.forward_worlds(batches, rows_per_pass=rows)
         return [out[self.bank.world(s.name)] for s in states]
 
     def _adapt_step(self, state: WorldState) -> None:
@@ -734,7 +757,11 @@ class GPSTrainer:
             self._c_step(state, state.current.cost, state.policy)
             if self.config.c_step == "pilqr":
                 self._pi2_step(state)
-        self._s_step(self.config.sgd_steps, {s.name: self._controller_targets(s) for s in states})
+        targets = {s.name: self._controller_targets(s) for s in states}
+        if self.config.relabel_policy_states:
+            for state in states:
+                targets[state.name] = torch.cat([targets[state.name], self._relabelled_targets(state)])
+        self._s_step(self.config.sgd_steps, targets)
 
     def _badmm_update(self, states: Sequence[WorldState], outputs_ready: bool = False) -> None:
         """BADMM: alternate S-step, dual step and C-step ``inner_iterations`` times (a round
@@ -775,17 +802,43 @@ class GPSTrainer:
         weights = torch.ones(state.samples.X.shape[:-1], dtype=torch.float64)
         return self._targets(state, gains.mean_actions(state.samples.X), weights)
 
+    def _relabelled_targets(self, state: WorldState) -> TensorDictBase:
+        """The composed policy rolled out alone, its states labelled with the controllers' mean
+        actions (``relabel_policy_states``); records where it ended (``policy_distance``) and
+        how far its actions were from those labels (``relabel_gap``, against ``action_gap`` at
+        the controllers' samples)."""
+        with self._timed("sampling"):
+            visited = self._draw(state, self._composed(state))
+        target = state.controller.gains.mean_actions(visited.X)
+        with self._timed("policy"), torch.no_grad():
+            self.bank.eval()
+            (out,) = self._forward_samples([state], [visited.obs])
+            self.bank.train()
+        mean = out["loc"].to(torch.float64)
+        state.diagnostics["policy_distance"] = float(visited.distance.mean())
+        state.diagnostics["relabel_gap"] = float((target - mean).norm(dim=-1).mean())
+        weights = torch.ones(visited.X.shape[:-1], dtype=torch.float64)
+        return self._targets(state, target, weights, obs=visited.obs)
+
     def _badmm_targets(self, state: WorldState) -> TensorDictBase:
         target, weights = badmm_targets(state.controller.gains, state.duals, state.samples.X)
         return self._targets(state, target, weights)
 
-    def _targets(self, state: WorldState, target: torch.Tensor, weights: torch.Tensor) -> TensorDictBase:
-        """The S-step's training set of one world, flattened ``[M * N * T]``."""
+    def _targets(
+        self,
+        state: WorldState,
+        target: torch.Tensor,
+        weights: torch.Tensor,
+        obs: TensorDictBase | None = None,
+    ) -> TensorDictBase:
+        """The S-step's training set of one world, flattened ``[M * N * T]``: ``target`` at the
+        observations ``obs`` (this iteration's samples' when None)."""
         precision = state.controller.gains.precision[:, None].expand(*target.shape[:-1], -1, -1)
         weights = weights * weights.numel() / weights.sum()  # mean 1 ...
         median = weights[weights > 1e-2].median()
         weights = weights.clamp_max(2 * median) / median  # ... at most twice the robust median
-        data = state.samples.obs.select(*POLICY_KEYS, strict=False)  # a new TD, shared leaves
+        obs = state.samples.obs if obs is None else obs
+        data = obs.select(*POLICY_KEYS, strict=False)  # a new TD, shared leaves
         if self.config.clip_targets:
             target = target.clamp(-TORQUE_LIMIT, TORQUE_LIMIT)
         data["target_action"] = target.to(torch.float32)
@@ -799,7 +852,7 @@ class GPSTrainer:
             buffers = {}
             for name, data in targets.items():
                 state = self.states[name]
-                if state.regression_data is None:
+                if state.regression_data is None or state.regression_data.storage.max_size != data.shape[0]:
                     state.regression_data = ReplayBuffer(
                         storage=LazyTensorStorage(data.shape[0]), batch_size=c.batch_per_world
                     )
