@@ -67,7 +67,7 @@ NEWER_OPTIONS = {
     "gps.pi2_kl": GPSConfig.pi2_kl,
     "gps.pi2_covariance_damping": GPSConfig.pi2_covariance_damping,
     "gps.train_modules": "all",
-    "gps.relabel_policy_states": False,
+    "gps.relabel_policy_states": "off",
 }
 
 

@@ -87,14 +87,15 @@ def test_overrides_reach_the_library_configs():
     by_robot = dataclasses.replace(robot_only.gps_config(), train_modules="robot")
     assert robot_only.finetune_gps_config() == by_robot
     assert robot_only.gps_config().train_modules == "all"  # training trains every module
-    dagger = composed("universe=tiny", "algo=mdgps", "eval.finetune_relabel_policy_states=true")
-    assert dagger.finetune_gps_config() == dataclasses.replace(dagger.gps_config(), relabel_policy_states=True)
-    assert not dagger.gps_config().relabel_policy_states  # training imitates at the controllers' samples
+    dagger = composed("universe=tiny", "algo=mdgps", "eval.finetune_relabel_policy_states=mean")
+    by_mean = dataclasses.replace(dagger.gps_config(), relabel_policy_states="mean")
+    assert dagger.finetune_gps_config() == by_mean
+    assert dagger.gps_config().relabel_policy_states == "off"  # training imitates at the controllers' samples
 
 
 def test_mdgps_only_options_under_badmm_are_refused_before_any_work_naming_the_fix():
     refused = (["gps.c_step=pi2", "algo=badmm"], ["algo=badmm", "eval.finetune_c_step=pi2"])
-    relabelled = ["algo=badmm", "eval.finetune_relabel_policy_states=true"]
+    relabelled = ["algo=badmm", "eval.finetune_relabel_policy_states=sampled"]
     for overrides in (*refused, ["algo=badmm", "eval.finetune_c_step=pilqr"], relabelled):
         run = composed("universe=tiny", *overrides)
         with pytest.raises(ConfigError, match="use algo=mdgps"):
@@ -136,6 +137,7 @@ def test_literal_choices_and_values_no_type_rules_out_fail_with_the_key():
             r"eval\.finetune_train_modules=arm: gps\.train_modules must be one of all, task, robot",
         ),
         ("gps.kl_step", -1.0, r"gps\.kl_step must be positive, got -1\.0"),
+        ("gps.relabel_policy_states", "yes", r"gps\.relabel_policy_states must be one of 'off', 'sampled'"),
     ]:
         run = RunConfig(universe="tiny")
         *path, name = key.split(".")

@@ -199,9 +199,10 @@ class EvalConfig:
             "task" or "robot"; :class:`~modnet.gps.GPSConfig`'s ``train_modules``); None:
             ``gps.train_modules``. Not part of a checkpoint's identity.
         finetune_relabel_policy_states: every fine-tuning start's S-step also imitates the
-            controllers at the states the network visits acting alone (True; DAgger's
-            relabelling, :class:`~modnet.gps.GPSConfig`'s ``relabel_policy_states``, MDGPS only);
-            None: ``gps.relabel_policy_states``. Not part of a checkpoint's identity.
+            controllers at the states the network visits acting alone ("sampled": with its
+            noise, or "mean": its mean actions; DAgger's relabelling, MDGPS only; "off": not;
+            :class:`~modnet.gps.GPSConfig`'s ``relabel_policy_states``); None:
+            ``gps.relabel_policy_states``. Not part of a checkpoint's identity.
     """
 
     conditions: str = "test"
@@ -224,7 +225,7 @@ class EvalConfig:
     finetune_c_step: str | None = None
     finetune_num_conditions: int | None = None
     finetune_train_modules: str | None = None
-    finetune_relabel_policy_states: bool | None = None
+    finetune_relabel_policy_states: str | None = None
 
 
 #: the GPSConfig fields an ``eval.finetune_<field>`` sets for the fine-tuning starts alone
@@ -300,7 +301,8 @@ class RunConfig:
         ``eval.finetune_sgd_steps``, ``eval.finetune_dynamics_prior_per_condition``,
         ``eval.finetune_policy_linearization``, ``eval.finetune_algo``,
         ``eval.finetune_c_step``, ``eval.finetune_num_conditions``, ``eval.finetune_train_modules``
-        and ``eval.finetune_relabel_policy_states`` when set, and sampling the policy with ``eval.finetune_sample_on_policy``.
+        and ``eval.finetune_relabel_policy_states`` when set, and sampling the policy with
+        ``eval.finetune_sample_on_policy``.
 
         Examples:
             >>> run = RunConfig(universe="tiny", eval=EvalConfig(finetune_samples_per_condition=20))

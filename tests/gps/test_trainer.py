@@ -13,6 +13,7 @@ import modnet.gps.trainer as trainer_module
 from modnet.bank import ModuleBank
 from modnet.evaluate import evaluating, training_env
 from modnet.gps.errors import NumericalError
+from modnet.gps.sampling import WorldSampler
 from modnet.gps.trainer import GPSConfig, GPSTrainer
 from modnet.specs import TORQUE_LIMIT
 
@@ -612,35 +613,44 @@ def test_pi2_and_pilqr_are_mdgps_c_steps():
         GPSConfig(c_step="pi2", algo="mdgps", pi2_kl=0.0)
 
 
-def test_relabelling_adds_the_networks_own_states_labelled_by_the_controllers():
-    """``relabel_policy_states`` (DAgger): after the C-step the network is rolled out alone, and
+@pytest.mark.parametrize("relabel", ["sampled", "mean"])
+def test_relabelling_adds_the_networks_own_states_labelled_by_the_controllers(relabel):
+    """``relabel_policy_states`` (DAgger): after the C-step the network is rolled out alone, N
+    times per condition with its noise ("sampled") or once with its mean actions ("mean"), and
     its states, labelled with the new controllers' mean actions, join the S-step's training set
     beside the controllers' samples; those rollouts are counted in the samples drawn."""
-    trainer = trainer_for(worlds=GRID[:1], algo="mdgps", relabel_policy_states=True)
+    trainer = trainer_for(worlds=GRID[:1], algo="mdgps", relabel_policy_states=relabel)
     (state,) = trainer.states.values()
-    sample, actors = state.sampler.sample, []
+    drawn = []
+    original = WorldSampler.sample
 
-    def spy(actor=None):
-        actors.append("controllers" if actor is state.controller else "policy")
-        out = sample(actor)
-        if actors[-1] == "policy":
-            spy.visited = out
+    def spy(sampler, actor=None):
+        out = original(sampler, actor)
+        drawn.append(("controllers" if actor is state.controller else "policy", out))
+        if relabel == "mean" and actor is not state.controller:  # the network's own mean actions
+            with torch.no_grad():
+                torch.testing.assert_close(actor(out.obs.clone())["loc"].double(), out.U)
         return out
 
-    state.sampler.sample = spy
-    for _ in range(2):
-        diagnostics = trainer.step()[state.name]
-    assert actors == ["controllers", "policy"] * 2
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(WorldSampler, "sample", spy)
+        for _ in range(2):
+            diagnostics = trainer.step()[state.name]
+    assert [who for who, _ in drawn] == ["controllers", "policy"] * 2
+    visited = drawn[-1][1]
     M, N, T = state.samples.X.shape[:3]
-    assert trainer.samples["trajectories"] == 2 * 2 * M * N
+    n_visited = N if relabel == "sampled" else 1
+    assert visited.X.shape[:3] == (M, n_visited, T)
+    assert trainer.samples["trajectories"] == 2 * M * (N + n_visited)
     data = state.regression_data.storage[:]
-    assert data.shape == (2 * M * N * T,)
+    assert data.shape == (M * (N + n_visited) * T,)
     relabelled = data[M * N * T :]
-    labels = state.controller.gains.mean_actions(spy.visited.X).reshape(-1, 3).to(torch.float32)
+    labels = state.controller.gains.mean_actions(visited.X).reshape(-1, 3).to(torch.float32)
     torch.testing.assert_close(relabelled["target_action"], labels)
-    torch.testing.assert_close(relabelled["robot", "state"], spy.visited.obs["robot", "state"].reshape(-1, 6))
-    assert not torch.allclose(relabelled["robot", "state"], data[: M * N * T]["robot", "state"])
+    torch.testing.assert_close(relabelled["robot", "state"], visited.obs["robot", "state"].reshape(-1, 6))
+    assert not torch.allclose(relabelled["robot", "state"], data[: len(relabelled)]["robot", "state"])
     assert diagnostics["relabel_gap"] > 0 and 0 < diagnostics["policy_distance"] < 5
+    assert trainer.bank.training  # the rollouts' eval mode is undone
 
 
 def test_relabelling_brings_the_network_nearer_the_controllers_where_it_acts_alone():
@@ -649,7 +659,7 @@ def test_relabelling_brings_the_network_nearer_the_controllers_where_it_acts_alo
     at these sizes: 0.43 to 0.79 times the gap; an S-step long enough to fit, and a KL step
     small enough for the controllers' labels to hold near the network)."""
     gaps = {}
-    for relabel in (False, True):
+    for relabel in ("off", "sampled"):
         trainer = trainer_for(
             worlds=GRID[:1], algo="mdgps", relabel_policy_states=relabel, sgd_steps=400, kl_step=0.5
         )
@@ -663,9 +673,9 @@ def test_relabelling_brings_the_network_nearer_the_controllers_where_it_acts_alo
             (out,) = trainer._forward_samples([state], [visited.obs])
         gap = state.controller.gains.mean_actions(visited.X) - out["loc"].to(torch.float64)
         gaps[relabel] = float(gap.norm(dim=-1).mean())
-    assert gaps[True] < 0.85 * gaps[False], gaps
+    assert gaps["sampled"] < 0.85 * gaps["off"], gaps
 
 
 def test_relabelling_is_an_mdgps_s_step():
     with pytest.raises(ValueError, match="relabel_policy_states.*algo=mdgps"):
-        GPSConfig(relabel_policy_states=True)
+        GPSConfig(relabel_policy_states="sampled")

@@ -41,6 +41,7 @@ from typing import Literal
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import LazyTensorStorage, ReplayBuffer
+from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from modnet.bank import ModuleBank
 from modnet.gps.badmm import BADMMConfig, Multipliers, badmm_cost, badmm_targets, dual_step
@@ -80,6 +81,8 @@ PIXEL_ROWS_PER_PASS = 32
 
 POLICY_LINEARIZATIONS = ("regression", "jacobian")
 C_STEPS = ("lqr", "pi2", "pilqr")
+#: ``GPSConfig.relabel_policy_states``: none, the policy with its noise, or its mean actions
+RELABELLINGS = ("off", "sampled", "mean")
 #: what ``GPSConfig.train_modules`` may name: every module, or those of one factor of a modular bank
 TRAIN_MODULES = ("all", "task", "robot")
 
@@ -192,13 +195,14 @@ class GPSConfig:
     #: ``sample_on_policy``, near the policy itself. Off by default (RESULTS, "a model-free
     #: C-step", "PILQR")
     c_step: Literal["lqr", "pi2", "pilqr"] = "lqr"
-    #: MDGPS: after each C-step, also roll the composed policy out alone (N times per condition,
-    #: with its own noise) and add the states it visits, labelled with the new controllers' mean
-    #: actions there, to the S-step's training set (DAgger's relabelling, Ross et al. 2011). The
-    #: controllers' samples alone show the network a narrow tube of states, and acting alone it
-    #: leaves it (RESULTS, "the authors' fine-tuning protocol"). Doubles the samples drawn.
-    #: Off by default (RESULTS, "relabelling the network's own states")
-    relabel_policy_states: bool = False
+    #: MDGPS: after each C-step, also roll the composed policy out alone and add the states it
+    #: visits, labelled with the new controllers' mean actions there, to the S-step's training
+    #: set (DAgger's relabelling, Ross et al. 2011): "sampled" rolls it out N times per
+    #: condition with its own Gaussian noise (twice the samples), "mean" once per condition
+    #: with its mean actions, as it acts when evaluated. The controllers' samples alone show the
+    #: network a narrow tube of states, and acting alone it leaves it (RESULTS, "the authors'
+    #: fine-tuning protocol"). Off by default (RESULTS, "relabelling the network's own states")
+    relabel_policy_states: Literal["off", "sampled", "mean"] = "off"
     #: PI2 and PILQR: the KL from uniform of each step's sample weights (the GPS code's ``kl_threshold``;
     #: at most log N, all weight on the best sample)
     pi2_kl: float = 1.0
@@ -242,7 +246,12 @@ class GPSConfig:
                 f"gps.c_step={self.c_step} is an MDGPS C-step (BADMM's adds dual terms PI2 cannot "
                 "weigh): use algo=mdgps, or gps.c_step=lqr"
             )
-        if self.relabel_policy_states and self.algo != "mdgps":
+        if self.relabel_policy_states not in RELABELLINGS:
+            raise ValueError(
+                f"gps.relabel_policy_states must be one of {', '.join(RELABELLINGS)}, "
+                f"got {self.relabel_policy_states!r}"
+            )
+        if self.relabel_policy_states != "off" and self.algo != "mdgps":
             raise ValueError(
                 "gps.relabel_policy_states labels the network's states with the controllers' actions, "
                 "an MDGPS S-step (BADMM's targets carry dual terms fitted at the controllers' samples): "
@@ -321,6 +330,7 @@ class WorldState:
     policy_mean: torch.Tensor | None = None  # [M, N, T, dU]
     sampled_costs: torch.Tensor | None = None  # [M, N, T] the samples' time-weighted costs
     regression_data: ReplayBuffer | None = None  # the S-step's (observation, target) pairs
+    mean_sampler: WorldSampler | None = None  # one rollout per condition (relabel_policy_states="mean")
     diagnostics: dict[str, float] = field(default_factory=dict)
 
 
@@ -388,19 +398,23 @@ class GPSTrainer:
         self.history: list[dict[str, dict[str, float]]] = []
 
     # --- set-up -------------------------------------------------------------------------
-    def _init_world(self, robot: str, task: str) -> WorldState:
+    def _new_sampler(self, robot: str, task: str, samples_per_condition: int) -> WorldSampler:
         c = self.config
-        sampler = WorldSampler(
+        return WorldSampler(
             robot,
             task,
             conditions=c.conditions,
-            samples_per_condition=c.samples_per_condition,
+            samples_per_condition=samples_per_condition,
             horizon=c.horizon,
             pixels=self.pixels,
             shaping=c.shaping,
             seed=c.scene_seed(robot, task),
             num_conditions=c.num_conditions,
         )
+
+    def _init_world(self, robot: str, task: str) -> WorldState:
+        c = self.config
+        sampler = self._new_sampler(robot, task, c.samples_per_condition)
         M, T = sampler.num_conditions, sampler.horizon
         initial = sampler.env.reset()[:M]  # copies 0..M-1 start from conditions 0..M-1
         n = sampler.world.robot.n_joints
@@ -533,14 +547,16 @@ class GPSTrainer:
             "distance": float(samples.distance.mean()),
         }
 
-    def _draw(self, state: WorldState, actor) -> Samples:
-        """One batch of N trajectories per condition from ``actor``, counted in :attr:`samples`."""
+    def _draw(self, state: WorldState, actor, sampler: WorldSampler | None = None) -> Samples:
+        """One batch of trajectories from ``actor`` (N per condition, by the world's sampler
+        unless ``sampler`` is given), counted in :attr:`samples`."""
+        sampler = sampler or state.sampler
         self.bank.eval()  # no dropout when a composed policy acts
-        samples = state.sampler.sample(actor)
+        samples = sampler.sample(actor)
         self.bank.train()
-        trajectories = state.sampler.env.batch_size[0]
+        trajectories = sampler.env.batch_size[0]
         self.drawn["trajectories"] += trajectories
-        self.drawn["env_steps"] += trajectories * state.sampler.horizon
+        self.drawn["env_steps"] += trajectories * sampler.horizon
         for name, value in (("sampled states", samples.X), ("sampled actions", samples.U)):
             # condition-major [M, ...], so the error names the condition
             check_finite(name, value, world=state.name, iteration=self.iteration)
@@ -758,7 +774,7 @@ class GPSTrainer:
             if self.config.c_step == "pilqr":
                 self._pi2_step(state)
         targets = {s.name: self._controller_targets(s) for s in states}
-        if self.config.relabel_policy_states:
+        if self.config.relabel_policy_states != "off":
             for state in states:
                 targets[state.name] = torch.cat([targets[state.name], self._relabelled_targets(state)])
         self._s_step(self.config.sgd_steps, targets)
@@ -808,7 +824,14 @@ class GPSTrainer:
         how far its actions were from those labels (``relabel_gap``, against ``action_gap`` at
         the controllers' samples)."""
         with self._timed("sampling"):
-            visited = self._draw(state, self._composed(state))
+            if self.config.relabel_policy_states == "mean":
+                if state.mean_sampler is None:
+                    world = state.sampler.world
+                    state.mean_sampler = self._new_sampler(world.robot.name, world.task.name, 1)
+                with set_exploration_type(ExplorationType.DETERMINISTIC):
+                    visited = self._draw(state, self._composed(state), state.mean_sampler)
+            else:
+                visited = self._draw(state, self._composed(state))
         target = state.controller.gains.mean_actions(visited.X)
         with self._timed("policy"), torch.no_grad():
             self.bank.eval()
