@@ -91,6 +91,9 @@ def test_overrides_reach_the_library_configs():
     by_mean = dataclasses.replace(dagger.gps_config(), relabel_policy_states="mean")
     assert dagger.finetune_gps_config() == by_mean
     assert dagger.gps_config().relabel_policy_states == "off"  # training imitates at the controllers' samples
+    wide = composed("universe=tiny", "eval.finetune_init_variance=5.0")
+    assert wide.finetune_gps_config() == dataclasses.replace(wide.gps_config(), init_variance=5.0)
+    assert wide.gps_config().init_variance == GPSConfig.init_variance  # training's first controllers
 
 
 def test_mdgps_only_options_under_badmm_are_refused_before_any_work_naming_the_fix():
@@ -137,6 +140,7 @@ def test_literal_choices_and_values_no_type_rules_out_fail_with_the_key():
             r"eval\.finetune_train_modules=arm: gps\.train_modules must be one of all, task, robot",
         ),
         ("gps.kl_step", -1.0, r"gps\.kl_step must be positive, got -1\.0"),
+        ("eval.finetune_init_variance", 0.0, r"finetune_init_variance=0\.0: gps\.init_variance must be"),
         ("gps.relabel_policy_states", "yes", r"gps\.relabel_policy_states must be one of 'off', 'sampled'"),
     ]:
         run = RunConfig(universe="tiny")

@@ -203,6 +203,9 @@ class EvalConfig:
             noise, or "mean": its mean actions; DAgger's relabelling, MDGPS only; "off": not;
             :class:`~modnet.gps.GPSConfig`'s ``relabel_policy_states``); None:
             ``gps.relabel_policy_states``. Not part of a checkpoint's identity.
+        finetune_init_variance: the variance of the first controllers of the scratch starts
+            (the transferred starts begin from the composed policy's linearisation and its
+            spread); None: ``gps.init_variance``. Not part of a checkpoint's identity.
     """
 
     conditions: str = "test"
@@ -226,6 +229,7 @@ class EvalConfig:
     finetune_num_conditions: int | None = None
     finetune_train_modules: str | None = None
     finetune_relabel_policy_states: str | None = None
+    finetune_init_variance: float | None = None
 
 
 #: the GPSConfig fields an ``eval.finetune_<field>`` sets for the fine-tuning starts alone
@@ -241,6 +245,7 @@ FINETUNE_GPS_OVERRIDES = (
     "num_conditions",
     "train_modules",
     "relabel_policy_states",
+    "init_variance",
 )
 
 
@@ -300,9 +305,9 @@ class RunConfig:
         ``eval.finetune_samples_per_condition``, ``eval.finetune_kl_step``,
         ``eval.finetune_sgd_steps``, ``eval.finetune_dynamics_prior_per_condition``,
         ``eval.finetune_policy_linearization``, ``eval.finetune_algo``,
-        ``eval.finetune_c_step``, ``eval.finetune_num_conditions``, ``eval.finetune_train_modules``
-        and ``eval.finetune_relabel_policy_states`` when set, and sampling the policy with
-        ``eval.finetune_sample_on_policy``.
+        ``eval.finetune_c_step``, ``eval.finetune_num_conditions``, ``eval.finetune_train_modules``,
+        ``eval.finetune_relabel_policy_states`` and ``eval.finetune_init_variance`` when set, and
+        sampling the policy with ``eval.finetune_sample_on_policy``.
 
         Examples:
             >>> run = RunConfig(universe="tiny", eval=EvalConfig(finetune_samples_per_condition=20))

@@ -680,3 +680,19 @@ def test_relabelling_brings_the_network_nearer_the_controllers_where_it_acts_alo
 def test_relabelling_is_an_mdgps_s_step():
     with pytest.raises(ValueError, match="relabel_policy_states.*algo=mdgps"):
         GPSConfig(relabel_policy_states="sampled")
+
+
+def test_the_first_controllers_explore_with_init_variance_and_the_first_samples_spread_with_it():
+    """``init_variance`` is the spread of a scratch start's first controllers (``eval.finetune_init_variance``
+    widens fine-tuning's scratch starts): their covariance, and the spread of the torques they draw."""
+    spreads = {}
+    for variance in (1.0, 4.0):
+        trainer = trainer_for(worlds=GRID[:1], init_variance=variance, samples_per_condition=8)
+        (state,) = trainer.states.values()
+        cov = state.controller.gains.cov
+        torch.testing.assert_close(cov, variance * torch.eye(3, dtype=cov.dtype).expand_as(cov))
+        samples = state.sampler.sample(state.controller)
+        spreads[variance] = float((samples.U - state.controller.gains.mean_actions(samples.X)).std())
+    assert 1.8 < spreads[4.0] / spreads[1.0] < 2.2, spreads  # the noise's std doubles
+    with pytest.raises(ValueError, match="init_variance must be positive"):
+        GPSConfig(init_variance=0.0)

@@ -215,6 +215,8 @@ class GPSConfig:
         for name in ("samples_per_condition", "sgd_steps", "initial_sgd_steps", "batch_per_world"):
             if getattr(self, name) < 1:
                 raise ValueError(f"gps.{name} must be at least 1, got {getattr(self, name)}")
+        if not self.init_variance > 0:
+            raise ValueError(f"gps.init_variance must be positive, got {self.init_variance}")
         if not self.kl_step > 0:
             raise ValueError(f"gps.kl_step must be positive, got {self.kl_step}")
         if not 0 < self.min_step_mult <= self.max_step_mult:
