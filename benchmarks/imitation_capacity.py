@@ -39,6 +39,11 @@ network after the run's S-steps, and ``network_refit`` a copy of it trained on t
   ``eval.random_conditions`` further random positions (when the run drew any), a steadier
   figure than four positions give.
 
+``takeover`` asks whether the controllers are an expert at the network's states, as DAgger's
+relabelling (``gps.relabel_policy_states``) assumes: the bank's network acts (mean actions) for
+the first quarter, half or three quarters of the horizon on the training conditions, then the
+controllers' mean actions take over; where they end, by the step at which they take over.
+
 ``saturated`` is the share of the controllers' mean torques at the samples beyond the limits;
 ``within_cell_share`` is the share of the targets' variance that lies within (condition, time
 step) cells, between one cell's samples: what the controllers' feedback ``K_t`` adds to
@@ -68,8 +73,9 @@ from _run_dir import FINISHED, finished_run
 from action_gap import clipped_gaps, network_mean_actions
 from first_finetune_iteration import TRANSFERRED, controller_distance, start_trainer
 from tensordict import TensorDictBase
-from tensordict.nn import TensorDictModule
+from tensordict.nn import TensorDictModule, TensorDictModuleBase
 from torch import nn
+from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from modnet.bank import ModuleBank
 from modnet.config import held_out_env, saved_run, validate
@@ -185,6 +191,48 @@ def acting(scenes: WorldEnv, policy, gains: LinearGaussianGains) -> dict[str, fl
     with torch.no_grad():
         td = scenes.rollout(scenes.horizon, policy, break_when_any_done=False)
     return {"gap_own": own_gap(td, gains), "distance": round(float(scenes.final_distance(td).mean()), 4)}
+
+
+class Takeover(TensorDictModuleBase):
+    """``first`` acts at the steps before ``step``, ``then`` from it on (each writes ``"action"``).
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> zero = TensorDictModule(lambda s: s * 0, in_keys=["s"], out_keys=["action"])
+        >>> one = TensorDictModule(lambda s: s * 0 + 1, in_keys=["s"], out_keys=["action"])
+        >>> td = TensorDict({"s": torch.ones(3, 1), "step_count": torch.tensor([[0], [1], [2]])}, [3])
+        >>> Takeover(zero, one, step=2)(td)["action"].flatten().tolist()
+        [0.0, 0.0, 1.0]
+    """
+
+    def __init__(self, first, then, step: int) -> None:
+        super().__init__()
+        self.first, self.then, self.step = first, then, step
+        self.in_keys = list(dict.fromkeys([*first.in_keys, *then.in_keys, "step_count"]))
+        self.out_keys = ["action"]
+
+    def forward(self, td: TensorDictBase) -> TensorDictBase:
+        early = td["step_count"] < self.step  # [B, 1]
+        first, then = self.first(td.clone())["action"], self.then(td.clone())["action"]
+        td["action"] = torch.where(early, first.to(then.dtype), then)
+        return td
+
+
+def takeover_distances(bank: ModuleBank, robot: str, task: str, scenes: WorldEnv, controller) -> dict:
+    """:class:`Takeover` of the bank's network by ``controller`` (both mean actions) on
+    ``scenes`` at a quarter, half and three quarters of the horizon: where each ends."""
+    out = {}
+    controller.deterministic = True
+    try:
+        with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+            bank.eval()
+            for step in (scenes.horizon // 4, scenes.horizon // 2, 3 * scenes.horizon // 4):
+                actor = Takeover(bank.compose(robot, task), controller, step)
+                td = scenes.rollout(scenes.horizon, actor, break_when_any_done=False)
+                out[str(step)] = round(float(scenes.final_distance(td).mean()), 4)
+    finally:
+        controller.deterministic = None
+    return out
 
 
 def score_policy(policy, env: WorldEnv) -> float:
@@ -337,6 +385,7 @@ def main() -> None:
         "sgd_steps": args.sgd_steps,
         "hidden": args.hidden,
         "controllers": round(controller_distance(scenes, trainer, gains), 4),
+        "takeover": takeover_distances(trainer.bank, robot, task, scenes, state.controller),
         "sampled": round(float(state.samples.distance.mean()), 4),
         "untouched": round(float(scenes.start_distance(untouched).mean()), 4),
         "saturated": round(float((asked["fit"].abs() > TORQUE_LIMIT).double().mean()), 4),
@@ -348,6 +397,8 @@ def main() -> None:
         "networks": networks,
     }
     print(f"controllers end {out['controllers']:.3f}, untouched {out['untouched']:.3f}")
+    takeover = ", ".join(f"at step {step} {d:.3f}" for step, d in out["takeover"].items())
+    print(f"the network then the controllers from {takeover}")
     print(json.dumps(out))
 
 

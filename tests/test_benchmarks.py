@@ -10,10 +10,12 @@ import pytest
 import torch
 from commands import BENCHMARKS, load_script, run_script
 from tensordict import TensorDict
+from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from modnet.bank import ModuleBank
-from modnet.evaluate import evaluation_env, rollout
-from modnet.gps.trainer import PHASES, PIXEL_ROWS_PER_PASS, GPSConfig
+from modnet.evaluate import evaluation_env, rollout, training_env
+from modnet.gps.sampling import state_of
+from modnet.gps.trainer import PHASES, PIXEL_ROWS_PER_PASS, GPSConfig, GPSTrainer
 from modnet.worlds import get_world
 
 
@@ -541,6 +543,7 @@ def test_imitation_capacity_refits_the_networks_of_an_mdgps_fine_tuning(tiny_run
     network, refit = out["networks"]["network"], out["networks"]["network_refit"]
     assert network["distance_test"] == out["rerun_curve"][-1]
     assert refit["gap_fit"] < network["gap_fit"], out["networks"]
+    assert len(out["takeover"]) == 3 and all(0 <= d < 10 for d in out["takeover"].values()), out["takeover"]
 
 
 def published_finetuning(seed: int, sampled: dict, curves: dict, command_extra: str = "") -> dict:
@@ -589,3 +592,28 @@ def test_finetune_figure_groups_seeds_into_experiments_and_finds_each_starts_fir
     assert done.returncode == 0, done.stderr
     assert json.loads(done.stdout.splitlines()[-1])["figure"] == str(tmp_path / "x.png")
     assert (tmp_path / "x.png").read_bytes().startswith(b"\x89PNG")
+
+
+def test_imitation_capacity_takeover_hands_the_arm_from_the_network_to_the_controllers_at_its_step():
+    """``takeover``: the network's mean actions before the step, then the controllers' mean
+    actions at the states the network has led the arm to (DAgger's labels, acted out)."""
+    capacity = load_script(BENCHMARKS / "imitation_capacity.py", "imitation_capacity")
+    world, T, step = ("three_link", "reach_red"), 12, 6
+    config = GPSConfig(samples_per_condition=1, num_conditions=4, horizon=T)
+    trainer = GPSTrainer(ModuleBank.build(*[[name] for name in world], seed=0, dropout=0.0), [world], config)
+    (state,) = trainer.states.values()
+    gains, scenes = state.controller.gains, training_env(*world, config)
+    network = trainer.bank.compose(*world)
+    state.controller.deterministic = True
+    with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+        alone = scenes.rollout(T, network, break_when_any_done=False)
+        takeover = capacity.Takeover(network, state.controller, step)
+        handed = scenes.rollout(T, takeover, break_when_any_done=False)
+    torch.testing.assert_close(handed["action"][:, :step], alone["action"][:, :step])
+    asked = gains.mean_actions(state_of(handed)[:, None])[:, 0].to(handed["action"].dtype)
+    torch.testing.assert_close(handed["action"][:, step:], asked[:, step:])
+    assert not torch.allclose(handed["action"][:, step:], alone["action"][:, step:])
+    distances = capacity.takeover_distances(trainer.bank, *world, scenes, state.controller)
+    assert list(distances) == ["3", "6", "9"]
+    assert distances["6"] == pytest.approx(float(scenes.final_distance(handed).mean()), abs=1e-4)
+    assert state.controller.deterministic is None  # the controllers sample again afterwards

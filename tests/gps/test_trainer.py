@@ -657,7 +657,7 @@ def test_relabelling_adds_the_networks_own_states_labelled_by_the_controllers(re
 def test_relabelling_brings_the_network_nearer_the_controllers_where_it_acts_alone(relabel):
     """What relabelling is for: at the states the network visits by itself, its actions come
     nearer the controllers' than when it only imitates them at their own samples (seeds 0 to 3
-    at these sizes: 0.43 to 0.79 times the gap, sampled or mean; an S-step long enough to fit, and a KL step
+    at these sizes: 0.48 to 0.79 times the gap, sampled or mean; an S-step long enough to fit, and a KL step
     small enough for the controllers' labels to hold near the network)."""
     gaps = {}
     for option in ("off", relabel):
