@@ -657,7 +657,9 @@ class GPSTrainer:
         gap = state.current.gains.mean_actions(state.samples.X) - state.policy_mean
         state.diagnostics["action_gap"] = float(gap.norm(dim=-1).mean())
 
-    def _forward_samples(self, states: Sequence[WorldState], obs: Sequence[TensorDictBase] | None = None):
+    def _forward_samples(
+        self, states: Sequence[WorldState], obs: Sequence[TensorDictBase] | None = None
+    ) -> list[TensorDictBase]:
         """The bank's outputs at every world's samples ``[M, N, T]`` (or at ``obs``, one per
         world): one pass from states; from images ``PIXEL_ROWS_PER_PASS`` rows per world at a
         time (a whole iteration's activations would take gigabytes, and large passes are
