@@ -75,12 +75,11 @@ from first_finetune_iteration import TRANSFERRED, controller_distance, start_tra
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule, TensorDictModuleBase
 from torch import nn
-from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from modnet.bank import ModuleBank
 from modnet.config import held_out_env, saved_run, validate
 from modnet.envs import WorldEnv
-from modnet.evaluate import rollout, score, training_env
+from modnet.evaluate import evaluating, rollout, score, training_env
 from modnet.gps.controller import LinearGaussianGains, time_filtered
 from modnet.gps.sampling import STATE_KEYS, state_of
 from modnet.gps.trainer import C_STEPS
@@ -219,19 +218,15 @@ class Takeover(TensorDictModuleBase):
 
 
 def takeover_distances(bank: ModuleBank, robot: str, task: str, scenes: WorldEnv, controller) -> dict:
-    """:class:`Takeover` of the bank's network by ``controller`` (both mean actions) on
-    ``scenes`` at a quarter, half and three quarters of the horizon: where each ends."""
+    """:class:`Takeover` of the bank's network by ``controller`` (both mean actions: the
+    controller's too, under :func:`~modnet.evaluate.evaluating`) on ``scenes`` at a quarter,
+    half and three quarters of the horizon: where each ends."""
     out = {}
-    controller.deterministic = True
-    try:
-        with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
-            bank.eval()
-            for step in (scenes.horizon // 4, scenes.horizon // 2, 3 * scenes.horizon // 4):
-                actor = Takeover(bank.compose(robot, task), controller, step)
-                td = scenes.rollout(scenes.horizon, actor, break_when_any_done=False)
-                out[str(step)] = round(float(scenes.final_distance(td).mean()), 4)
-    finally:
-        controller.deterministic = None
+    with evaluating(bank):
+        for step in (scenes.horizon // 4, scenes.horizon // 2, 3 * scenes.horizon // 4):
+            actor = Takeover(bank.compose(robot, task), controller, step)
+            td = scenes.rollout(scenes.horizon, actor, break_when_any_done=False)
+            out[str(step)] = round(float(scenes.final_distance(td).mean()), 4)
     return out
 
 

@@ -10,10 +10,9 @@ import pytest
 import torch
 from commands import BENCHMARKS, load_script, run_script
 from tensordict import TensorDict
-from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from modnet.bank import ModuleBank
-from modnet.evaluate import evaluation_env, rollout, training_env
+from modnet.evaluate import evaluating, evaluation_env, rollout, training_env
 from modnet.gps.sampling import state_of
 from modnet.gps.trainer import PHASES, PIXEL_ROWS_PER_PASS, GPSConfig, GPSTrainer
 from modnet.worlds import get_world
@@ -604,8 +603,7 @@ def test_imitation_capacity_takeover_hands_the_arm_from_the_network_to_the_contr
     (state,) = trainer.states.values()
     gains, scenes = state.controller.gains, training_env(*world, config)
     network = trainer.bank.compose(*world)
-    state.controller.deterministic = True
-    with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+    with evaluating(trainer.bank):  # mean actions, the controllers' too
         alone = scenes.rollout(T, network, break_when_any_done=False)
         takeover = capacity.Takeover(network, state.controller, step)
         handed = scenes.rollout(T, takeover, break_when_any_done=False)
@@ -616,4 +614,4 @@ def test_imitation_capacity_takeover_hands_the_arm_from_the_network_to_the_contr
     distances = capacity.takeover_distances(trainer.bank, *world, scenes, state.controller)
     assert list(distances) == ["3", "6", "9"]
     assert distances["6"] == pytest.approx(float(scenes.final_distance(handed).mean()), abs=1e-4)
-    assert state.controller.deterministic is None  # the controllers sample again afterwards
+    assert trainer.bank.training  # the bank's mode is restored
