@@ -287,6 +287,14 @@ def test_training_one_factor_of_a_monolithic_bank_is_refused():
         small_config(train_modules="arm")
 
 
+def test_training_a_factor_the_bank_lacks_is_refused_before_any_world_is_built():
+    """A bank whose factors are not (task, robot) names its own; the empty bank would otherwise
+    fail on the world's missing modules, so the message proves the check comes first."""
+    bank = ModuleBank(("task", "arm"))
+    with pytest.raises(ValueError, match="gps.train_modules='robot': valid for this bank: all, arm, task"):
+        GPSTrainer(bank, GRID[:1], small_config(train_modules="robot"))
+
+
 def test_eta_at_its_cap_raises_with_the_last_kl():
     trainer = trainer_for(worlds=GRID[:1], kl_step=1e-9, max_eta=1e-3)
     message = r"eta reached its cap 0.001 .*last KL .*world=three_link/reach_red"

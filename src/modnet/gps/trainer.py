@@ -370,6 +370,9 @@ class GPSTrainer:
                 "reads images: use regression"
             )
         check_train_modules(config.train_modules, bank.policy)
+        if config.train_modules not in ("all", *bank.world_factors):  # before any world is built
+            valid = ", ".join(("all", *bank.world_factors))
+            raise ValueError(f"gps.train_modules={config.train_modules!r}: valid for this bank: {valid}")
         for world in worlds:
             bank.parts(bank.world(*world))  # fails early, naming what is missing
         torch.manual_seed(config.seed)
@@ -387,11 +390,7 @@ class GPSTrainer:
             for encoder in (m for m in bank.modules() if isinstance(m, PixelEncoder)):
                 encoder.requires_grad_(False)
         if config.train_modules != "all":
-            factors = bank.world_factors
-            if config.train_modules not in factors:
-                valid = ", ".join(("all", *factors))
-                raise ValueError(f"gps.train_modules={config.train_modules!r}: valid for this bank: {valid}")
-            for factor in factors:
+            for factor in bank.world_factors:
                 if factor != config.train_modules:
                     for name in bank.names(factor):
                         bank.get(factor, name).requires_grad_(False)
