@@ -212,6 +212,8 @@ def compare_finetuning(
             log.scalars({f"finetune/{name}/sampled_distance": distance}, step=i)
         for i, distance in enumerate(tuning.training[name]):
             log.scalars({f"finetune/{name}/training_distance": distance}, step=i)
+        for i, diagnostics in enumerate(tuning.diagnostics[name], start=1):
+            log.scalars({f"finetune/{name}/gps/{key}": value for key, value in diagnostics.items()}, step=i)
     return tuning, failure
 
 
@@ -293,6 +295,7 @@ def main(cfg: DictConfig) -> None:
             results["finetune"] = tuning.curves
             results["finetune_sampled"] = tuning.sampled
             results["finetune_training"] = tuning.training
+            results["finetune_diagnostics"] = tuning.diagnostics
             results["finetune_samples"] = tuning.samples
             figures.append("finetune")
             seconds["finetune"] = time.perf_counter() - start

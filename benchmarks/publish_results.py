@@ -179,7 +179,8 @@ def zero_shot(run_dir: Path, experiment: str, docs: Path = DOCS) -> dict:
 def finetuning(results: dict) -> dict:
     """Fine-tuning curves (iteration -> mean test distance; 0: before), iterations to success and,
     where the run recorded them, the mean distance of each iteration's samples (entry i:
-    iteration i + 1) and the network's on the training conditions (entry i: after i iterations)."""
+    iteration i + 1), the network's on the training conditions (entry i: after i iterations)
+    and each iteration's GPS diagnostics (entry i: iteration i + 1)."""
     success = results["success_distance"]
     curves = {start: [_round(d) for d in curve] for start, curve in results["finetune"].items()}
     # the first iteration whose mean test distance is below the success distance; None: never
@@ -197,6 +198,13 @@ def finetuning(results: dict) -> dict:
         }
         or None,
         "samples": results.get("finetune_samples"),
+        # each iteration's GPS diagnostics (entry i: iteration i + 1), to 4 significant digits,
+        # since some (eta, the KL) are far below the distances' 4 decimals
+        "diagnostics": {
+            start: [{k: float(f"{v:.4g}") for k, v in d.items()} for d in iterations]
+            for start, iterations in results.get("finetune_diagnostics", {}).items()
+        }
+        or None,
         "paper": PAPER_FINETUNE if paper_holdout(results) else None,
     }
 

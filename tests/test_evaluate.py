@@ -175,6 +175,12 @@ def test_finetune_gives_one_curve_per_start_from_before_training(bank, env, tmp_
     scenes = evaluation_env(*HELD_OUT, num_conditions=config.num_conditions, horizon=12, conditions="train")
     assert tuning.training["composed"][0] == pytest.approx(score(bank, *HELD_OUT, scenes).mean)  # its scenes
     assert tuning.training["composed"][0] != pytest.approx(curves["composed"][0])  # not the test positions
+    # each iteration's GPS diagnostics, whose distance is the samples' curve
+    assert list(tuning.diagnostics) == list(curves)
+    for start, iterations in tuning.diagnostics.items():
+        assert [d["distance"] for d in iterations] == tuning.sampled[start]
+        assert all({"sampled_cost", "kl", "step_mult", "action_gap"} <= set(d) for d in iterations), start
+        assert all(np.isfinite(list(d.values())).all() for d in iterations), start
     assert "wrong_task" not in finetune(
         tmp_path / "bank", *HELD_OUT, env, config, iterations=0, wrong_task=None
     ).curves

@@ -65,6 +65,8 @@ def test_tiny_pipeline_end_to_end_in_under_two_minutes(tiny_run):
     assert finetune_trajectories == {iterations * conditions * FINETUNE_SAMPLES}
     # each iteration's samples: one mean distance per iteration, no entry for "before"
     assert {s: len(c) for s, c in results["finetune_sampled"].items()} == {s: 1 for s in results["finetune"]}
+    diagnostics = results["finetune_diagnostics"]  # and each iteration's GPS diagnostics
+    assert {s: [d["distance"] for d in its] for s, its in diagnostics.items()} == results["finetune_sampled"]
     assert results["code"] == code_version()  # the commit that ran; None/None for an installed copy
     assert results["machine"] == machine()  # where its figures repeat to the digit
     for name in [
@@ -83,6 +85,7 @@ def test_tiny_pipeline_end_to_end_in_under_two_minutes(tiny_run):
     scalars = run_dir / "tiny-four_link-reach_black" / "scalars"
     assert list((scalars / "train").rglob("distance.csv"))
     assert (scalars / "finetune" / "composed" / "sampled_distance.csv").stat().st_size > 0
+    assert (scalars / "finetune" / "composed" / "gps" / "kl.csv").stat().st_size > 0
 
 
 def publish_zero_shot(run_dir: Path, experiment: str, docs: Path) -> dict:
@@ -121,6 +124,11 @@ def test_published_fine_tuning_has_curves_iterations_to_success_samples_and_comm
     on_scenes = results["finetune_training"]  # the network on the training conditions, entry 0 before
     assert tuning["training_conditions"] == {s: pytest.approx(c, abs=1e-4) for s, c in on_scenes.items()}
     assert all(len(on_scenes[s]) == len(c) for s, c in results["finetune"].items())
+    diagnostics = results["finetune_diagnostics"]  # to 4 significant digits
+    assert tuning["diagnostics"] == {
+        s: [{k: pytest.approx(v, rel=1e-3) for k, v in d.items()} for d in its]
+        for s, its in diagnostics.items()
+    }
     assert published["code"] == results["code"]
     assert (tmp_path / "tiny_finetune_finetune.png").read_bytes() == (run_dir / "finetune.png").read_bytes()
     assert tuning["paper"].startswith("the composed start without shaping")  # the paper's held-out world

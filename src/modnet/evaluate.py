@@ -325,6 +325,9 @@ class FineTuning:
     #: the starts a :class:`~modnet.gps.errors.NumericalError` stopped, with its message; their
     #: curves end at the last iteration that finished
     failed: dict[str, str] = field(default_factory=dict)
+    #: each iteration's GPS diagnostics on the held-out world (:meth:`GPSTrainer.step`'s:
+    #: ``distance`` is ``sampled``'s entry, with the C-step's KL, step size, action gap, ...)
+    diagnostics: dict[str, list[dict[str, float]]] = field(default_factory=dict)
 
 
 class FineTuningFailed(RuntimeError):
@@ -376,10 +379,10 @@ def finetune(
     use ``config``'s seeds.  Returns the :class:`FineTuning` curves ``{start: [mean test
     distance after 0, 1, ..., iterations iterations]}``, the same on the world's training
     conditions (the scenes GPS samples, without noise: with four test positions the test curve
-    moves in steps of a whole position), the mean distance of each iteration's samples and each
-    start's sample counts; ``wrong_task`` is left out when there is no wrong task module
-    (None).  ``progress(start, iteration, test_distance, sampled_distance)`` is called after
-    each iteration.
+    moves in steps of a whole position), the mean distance of each iteration's samples, each
+    iteration's GPS diagnostics and each start's sample counts; ``wrong_task`` is left out
+    when there is no wrong task module (None).  ``progress(start, iteration, test_distance,
+    sampled_distance)`` is called after each iteration.
 
     A :class:`~modnet.gps.errors.NumericalError` stops only its own start: the other starts
     still run (each is a fresh trainer with the same seeds), and then :class:`FineTuningFailed`
@@ -394,13 +397,15 @@ def finetune(
             continue
         bank = _start_bank(bank_dir, start, robot, task, wrong_task, config.seed)
         trainer = GPSTrainer(bank, [(robot, task)], start_config(config, start), pixels=pixels)
-        curve, sampled = [score(bank, robot, task, env).mean], []
+        curve, sampled, diagnosed = [score(bank, robot, task, env).mean], [], []
         on_scenes = [score(bank, robot, task, scenes).mean]
         result.curves[start], result.training[start], result.sampled[start] = curve, on_scenes, sampled
+        result.diagnostics[start] = diagnosed
         try:
             for iteration in range(iterations):
                 (diagnostics,) = trainer.step().values()  # the held-out world is the only one
-                sampled.append(float(diagnostics["distance"]))
+                diagnosed.append({name: float(value) for name, value in diagnostics.items()})
+                sampled.append(diagnosed[-1]["distance"])
                 curve.append(score(bank, robot, task, env).mean)
                 on_scenes.append(score(bank, robot, task, scenes).mean)
                 if progress is not None:
