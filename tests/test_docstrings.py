@@ -1,8 +1,10 @@
-"""Every docstring example in the library runs and prints what it says (TorchRL's style: runnable docs)."""
+"""Every docstring example in the library and the benchmarks runs and prints what it says
+(TorchRL's style: runnable docs)."""
 
 import doctest
 import importlib
 import pkgutil
+from pathlib import Path
 
 import pytest
 
@@ -18,6 +20,12 @@ MODULES = sorted(
         for m in pkgutil.walk_packages(package.__path__, f"{package.__name__}.")
     }
 )
+#: the benchmark scripts with examples (importable: pytest puts benchmarks/ on the path)
+BENCHMARKS = sorted(
+    path.stem
+    for path in (Path(__file__).parents[1] / "benchmarks").glob("*.py")
+    if ">>> " in path.read_text()
+)
 #: the public building blocks: each must show how it is called
 TEACH_BY_EXAMPLE = {
     "modnet.bank",
@@ -31,9 +39,13 @@ TEACH_BY_EXAMPLE = {
 }
 
 
-@pytest.mark.parametrize("name", MODULES)
+@pytest.mark.parametrize("name", MODULES + BENCHMARKS)
 def test_docstring_examples_run(name):
     result = doctest.testmod(importlib.import_module(name), optionflags=doctest.ELLIPSIS)
     assert result.failed == 0
-    if name in TEACH_BY_EXAMPLE:
+    if name in TEACH_BY_EXAMPLE or name in BENCHMARKS:
         assert result.attempted > 0
+
+
+def test_the_benchmarks_with_examples_are_found():
+    assert {"imitation_capacity", "reachable"} <= set(BENCHMARKS)
