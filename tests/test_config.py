@@ -94,6 +94,10 @@ def test_overrides_reach_the_library_configs():
     wide = composed("universe=tiny", "eval.finetune_init_variance=5.0")
     assert wide.finetune_gps_config() == dataclasses.replace(wide.gps_config(), init_variance=5.0)
     assert wide.gps_config().init_variance == GPSConfig.init_variance  # training's first controllers
+    exploring = composed("universe=tiny", "eval.finetune_pi2_covariance_damping=1e6")
+    kept = dataclasses.replace(exploring.gps_config(), pi2_covariance_damping=1e6)
+    assert exploring.finetune_gps_config() == kept
+    assert exploring.gps_config().pi2_covariance_damping == GPSConfig.pi2_covariance_damping
 
 
 def test_mdgps_only_options_under_badmm_are_refused_before_any_work_naming_the_fix():
@@ -141,6 +145,11 @@ def test_literal_choices_and_values_no_type_rules_out_fail_with_the_key():
         ),
         ("gps.kl_step", -1.0, r"gps\.kl_step must be positive, got -1\.0"),
         ("eval.finetune_init_variance", 0.0, r"finetune_init_variance=0\.0: gps\.init_variance must be"),
+        (
+            "eval.finetune_pi2_covariance_damping",
+            -1.0,
+            r"finetune_pi2_covariance_damping=-1\.0: gps\.pi2_kl and gps\.pi2_covariance_damping must be",
+        ),
         ("gps.relabel_policy_states", "yes", r"gps\.relabel_policy_states must be one of 'off', 'sampled'"),
     ]:
         run = RunConfig(universe="tiny")

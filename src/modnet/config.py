@@ -206,6 +206,10 @@ class EvalConfig:
         finetune_init_variance: the variance of the first controllers of the scratch starts
             (the transferred starts begin from the composed policy's linearisation and its
             spread); None: ``gps.init_variance``. Not part of a checkpoint's identity.
+        finetune_pi2_covariance_damping: how slowly every fine-tuning start's PI2 (or PILQR)
+            shrinks its exploration (larger: slower; :class:`~modnet.gps.GPSConfig`'s
+            ``pi2_covariance_damping``); None: ``gps.pi2_covariance_damping``. Not part of a
+            checkpoint's identity.
     """
 
     conditions: str = "test"
@@ -230,6 +234,7 @@ class EvalConfig:
     finetune_train_modules: str | None = None
     finetune_relabel_policy_states: str | None = None
     finetune_init_variance: float | None = None
+    finetune_pi2_covariance_damping: float | None = None
 
 
 #: the GPSConfig fields an ``eval.finetune_<field>`` sets for the fine-tuning starts alone
@@ -246,6 +251,7 @@ FINETUNE_GPS_OVERRIDES = (
     "train_modules",
     "relabel_policy_states",
     "init_variance",
+    "pi2_covariance_damping",
 )
 
 
@@ -306,8 +312,9 @@ class RunConfig:
         ``eval.finetune_sgd_steps``, ``eval.finetune_dynamics_prior_per_condition``,
         ``eval.finetune_policy_linearization``, ``eval.finetune_algo``,
         ``eval.finetune_c_step``, ``eval.finetune_num_conditions``, ``eval.finetune_train_modules``,
-        ``eval.finetune_relabel_policy_states`` and ``eval.finetune_init_variance`` when set, and
-        sampling the policy with ``eval.finetune_sample_on_policy``.
+        ``eval.finetune_relabel_policy_states``, ``eval.finetune_init_variance`` and
+        ``eval.finetune_pi2_covariance_damping`` when set, and sampling the policy with
+        ``eval.finetune_sample_on_policy``.
 
         Examples:
             >>> run = RunConfig(universe="tiny", eval=EvalConfig(finetune_samples_per_condition=20))

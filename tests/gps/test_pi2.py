@@ -96,6 +96,25 @@ def test_a_collapsed_sample_spread_is_a_numerical_error_naming_its_condition():
     assert info.value.condition == 1
 
 
+def test_the_damping_sets_how_much_of_the_weighted_shrink_the_covariance_takes():
+    """``cov_new = cov_old * ratio ** (1 / damping)``: damping 1 takes the whole shrink, 2 its
+    square root, and a very large damping keeps the exploration as it was."""
+    gains = gaussian(M=1, T=3, variance=2.0)
+    g = torch.Generator().manual_seed(5)
+    X = torch.zeros(1, 12, 3, 3, dtype=torch.float64)
+    U = draw(gains, X, g)
+    costs = U.pow(2).sum(-1)  # the samples near 0 weigh most: the weighted spread is narrower
+
+    def scale(damping: float) -> torch.Tensor:
+        cov = pi2_update(gains, X, U, costs, covariance_damping=damping).gains.cov
+        return cov.diagonal(dim1=-2, dim2=-1) / gains.cov.diagonal(dim1=-2, dim2=-1)
+
+    whole, root, kept = scale(1.0), scale(2.0), scale(1e6)
+    assert bool((whole < 0.9).all())
+    assert torch.allclose(root, whole.sqrt())
+    assert torch.allclose(kept, torch.ones_like(kept), atol=1e-5)
+
+
 def test_covariance_damping_must_be_positive():
     gains = gaussian()
     X, U = torch.zeros(1, 3, 4, 3), torch.zeros(1, 3, 4, 2)
