@@ -569,6 +569,18 @@ def test_a_pi2_c_step_lowers_the_cost_from_the_samples_alone(monkeypatch):
     assert state.policy is None and state.policy_prior.X is None
 
 
+@pytest.mark.parametrize("damping", [2.0, 1e6])
+def test_exploration_is_the_controllers_spread_which_pi2_shrinks_as_slowly_as_its_damping_says(damping):
+    trainer = trainer_for(GRID[:1], algo="mdgps", c_step="pi2", pi2_covariance_damping=damping)
+    spread = [trainer.step()["three_link/reach_red"]["exploration"] for _ in range(3)]
+    cov = trainer.states["three_link/reach_red"].controller.gains.cov
+    assert spread[-1] == pytest.approx(float(cov.diagonal(dim1=-2, dim2=-1).mean().sqrt()))
+    if damping == 2.0:
+        assert spread[0] < GPSConfig.init_variance**0.5 and spread[2] < spread[1] < spread[0]
+    else:  # kept as the first controllers explored
+        assert spread == pytest.approx([GPSConfig.init_variance**0.5] * 3, rel=1e-4)
+
+
 def test_a_pi2_c_step_sampling_the_policy_reweights_around_its_linearisation():
     """With ``sample_on_policy`` PI2 keeps the gains ``K`` of the policy's linearisation, the
     distribution that drew the samples, and moves only the feed-forward term."""

@@ -474,7 +474,8 @@ class GPSTrainer:
           multiplier and the step-size multiplier (PI2: the sample weights' KL from uniform and
           their temperature, means over steps; the step size stays 1); ``action_gap``:
           controller vs policy mean action at the samples; ``nu`` (BADMM): the policy-KL
-          weight; ``regression_loss``.
+          weight; ``regression_loss``; ``exploration``: the new controllers' spread, the root
+          of their mean action variance (PI2 shrinks it by ``pi2_covariance_damping``).
         """
         start = time.perf_counter()
         states = list(self.states.values())
@@ -930,6 +931,8 @@ class GPSTrainer:
         if state.current.dynamics is not None:
             predicted = laplace_cost(state.controller.gains, state.current.dynamics, state.current.cost)
             state.diagnostics["predicted_cost"] = float(predicted.mean())
+        variance = state.controller.gains.cov.diagonal(dim1=-2, dim2=-1).mean()
+        state.diagnostics["exploration"] = float(variance.sqrt())
         return dict(sorted(state.diagnostics.items()))
 
     # --- checkpoints --------------------------------------------------------------------------------
