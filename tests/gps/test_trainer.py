@@ -302,6 +302,21 @@ def test_eta_at_its_cap_raises_with_the_last_kl():
         trainer.step()
 
 
+def test_the_bank_acts_without_dropout_and_trains_again_even_when_sampling_fails(monkeypatch):
+    trainer = trainer_for(worlds=GRID[:1])
+    state = trainer.states["three_link/reach_red"]
+    modes = []
+
+    def failing(actor):
+        modes.append(trainer.bank.training)
+        raise RuntimeError("the simulator stopped")
+
+    monkeypatch.setattr(state.sampler, "sample", failing)
+    with pytest.raises(RuntimeError, match="the simulator stopped"):
+        trainer.step()
+    assert modes == [False] and trainer.bank.training
+
+
 def test_a_c_step_failure_describes_the_fitted_dynamics_that_blew_up(monkeypatch):
     """A fit whose joint-velocity entry grows 30x a step (as a contact's fit carried to a
     condition without the contact did on the drawer) leaves no eta with a PD Q_uu; the error

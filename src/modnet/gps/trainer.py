@@ -459,6 +459,16 @@ class GPSTrainer:
         yield
         self.timings[phase] += time.perf_counter() - start
 
+    @contextlib.contextmanager
+    def _acting(self) -> Iterator[None]:
+        """The bank without dropout, as the composed policy acts (sampling, linearising,
+        relabelling); back in training mode afterwards, also when that raises."""
+        self.bank.eval()
+        try:
+            yield
+        finally:
+            self.bank.train()
+
     # --- one iteration ------------------------------------------------------------------------
     def step(self) -> dict[str, dict[str, float]]:
         """One GPS iteration over all worlds; returns per-world diagnostics (means over conditions).
@@ -553,9 +563,8 @@ class GPSTrainer:
         """One batch of trajectories from ``actor`` (N per condition, by the world's sampler
         unless ``sampler`` is given), counted in :attr:`samples`."""
         sampler = sampler or state.sampler
-        self.bank.eval()  # no dropout when a composed policy acts
-        samples = sampler.sample(actor)
-        self.bank.train()
+        with self._acting():
+            samples = sampler.sample(actor)
         trajectories = sampler.env.batch_size[0]
         self.drawn["trajectories"] += trajectories
         self.drawn["env_steps"] += trajectories * sampler.horizon
@@ -592,13 +601,11 @@ class GPSTrainer:
         """
         as_applied = self._samples_policy()
         linearise = as_applied or self.config.fits_model
-        with self._timed("policy"):
-            self.bank.eval()
+        with self._timed("policy"), self._acting():
             if self.config.policy_linearization == "jacobian" and linearise:
                 out, jacobians = self._outputs_and_jacobians(states)
             else:
                 out, jacobians = self._forward_samples(states), [None] * len(states)
-            self.bank.train()
         for state, result, jacobian in zip(states, out, jacobians, strict=True):
             mean = result["loc"].to(torch.float64)
             check_finite("policy action", mean, world=state.name, iteration=self.iteration)
@@ -837,10 +844,8 @@ class GPSTrainer:
             else:
                 visited = self._draw(state, self._composed(state))
         target = state.controller.gains.mean_actions(visited.X)
-        with self._timed("policy"), torch.no_grad():
-            self.bank.eval()
+        with self._timed("policy"), self._acting(), torch.no_grad():
             (out,) = self._forward_samples([state], [visited.obs])
-            self.bank.train()
         mean = out["loc"].to(torch.float64)
         state.diagnostics["policy_distance"] = float(visited.distance.mean())
         state.diagnostics["relabel_gap"] = float((target - mean).norm(dim=-1).mean())
