@@ -307,14 +307,9 @@ class RunConfig:
         return dataclasses.replace(build(GPSConfig, self.gps, "gps."), **changes)
 
     def finetune_gps_config(self) -> GPSConfig:
-        """The :class:`GPSConfig` of the fine-tuning starts: the training's, with
-        ``eval.finetune_samples_per_condition``, ``eval.finetune_kl_step``,
-        ``eval.finetune_sgd_steps``, ``eval.finetune_dynamics_prior_per_condition``,
-        ``eval.finetune_policy_linearization``, ``eval.finetune_algo``,
-        ``eval.finetune_c_step``, ``eval.finetune_num_conditions``, ``eval.finetune_train_modules``,
-        ``eval.finetune_relabel_policy_states``, ``eval.finetune_init_variance`` and
-        ``eval.finetune_pi2_covariance_damping`` when set, and sampling the policy with
-        ``eval.finetune_sample_on_policy``.
+        """The :class:`GPSConfig` of the fine-tuning starts: the training's, with each field
+        of :data:`FINETUNE_GPS_OVERRIDES` replaced by its ``eval.finetune_<field>`` when set
+        (not None), and sampling the policy with ``eval.finetune_sample_on_policy``.
 
         Examples:
             >>> run = RunConfig(universe="tiny", eval=EvalConfig(finetune_samples_per_condition=20))
