@@ -52,6 +52,7 @@ from pathlib import Path
 
 import torch
 from _run_dir import FINISHED, finished_run
+from tensordict import TensorDictBase
 
 from modnet.config import RunConfig, held_out_env, saved_run, validate
 from modnet.envs import FINAL_STEPS, WorldEnv
@@ -64,20 +65,24 @@ from modnet.universes import Universe
 TRANSFERRED = ("composed", "wrong_task")
 
 
-def controller_distance(scenes: WorldEnv, trainer: GPSTrainer, gains: LinearGaussianGains) -> float:
-    """Mean final distance of the held-out world's controllers with ``gains`` on ``scenes`` (its
-    training conditions), mean actions only."""
+def controller_rollout(scenes: WorldEnv, trainer: GPSTrainer, gains: LinearGaussianGains) -> TensorDictBase:
+    """The held-out world's controllers with ``gains`` acting on ``scenes`` (its training
+    conditions), mean actions only; the controllers keep their own gains afterwards."""
     (state,) = trainer.states.values()
     controller, kept = state.controller, state.controller.gains
     controller.set_gains(gains)
     controller.deterministic = True
     try:
         with torch.no_grad():
-            td = scenes.rollout(scenes.horizon, controller, break_when_any_done=False)
-        return float(scenes.final_distance(td).mean())
+            return scenes.rollout(scenes.horizon, controller, break_when_any_done=False)
     finally:
         controller.deterministic = None
         controller.set_gains(kept)
+
+
+def controller_distance(scenes: WorldEnv, trainer: GPSTrainer, gains: LinearGaussianGains) -> float:
+    """Mean final distance of :func:`controller_rollout`."""
+    return float(scenes.final_distance(controller_rollout(scenes, trainer, gains)).mean())
 
 
 def predicted_distance(trainer: GPSTrainer, gains: LinearGaussianGains) -> float:

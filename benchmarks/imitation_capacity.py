@@ -43,6 +43,15 @@ network after the run's S-steps, and ``network_refit`` a copy of it trained on t
 relabelling (``gps.relabel_policy_states``) assumes: the bank's network acts (mean actions) for
 the first quarter, half or three quarters of the horizon on the training conditions, then the
 controllers' mean actions take over; where they end, by the step at which they take over.
+Under PI2 the controllers keep the feedback gains ``K_t`` of the distribution that first drew
+samples (the network's linearisation) and learn only their feed-forward, so ``takeover`` may
+fail for want of feedback. ``takeover_refitted`` tries others: the gains of an LQR on dynamics
+fitted to the last samples (the C-step's own, where it fits a model), with the feed-forward
+moved so that the controllers' noise-free path stays the same (:func:`recentred`; its
+``controllers`` figure repeats theirs). ``track_<w>`` tracks that path with the cost
+:func:`tracking_cost` (states scaled by the samples' spread, torques weighted ``w``);
+``task`` is the KL-constrained LQR on the task's cost around the controllers, at
+fine-tuning's KL step. ``feedback_norm`` is each one's mean ``|K_t|`` (Frobenius).
 
 ``saturated`` is the share of the controllers' mean torques at the samples beyond the limits;
 ``within_cell_share`` is the share of the targets' variance that lies within (condition, time
@@ -58,6 +67,8 @@ run's own fine-tuning curve ``run_curve``: the two are equal when this reran the
 Prints a line per network, then ONE JSON object on its last line.
 
     python benchmarks/imitation_capacity.py outputs/manipulation --iterations 10 --algo mdgps --c-step pi2
+    python benchmarks/imitation_capacity.py outputs/manipulation --iterations 30 --c-step pi2 \
+        --pi2-covariance-damping 2 --refit-weights 0.01 0.1 1
 """
 
 from __future__ import annotations
@@ -71,7 +82,7 @@ from pathlib import Path
 import torch
 from _run_dir import FINISHED, finished_run
 from action_gap import clipped_gaps, network_mean_actions
-from first_finetune_iteration import TRANSFERRED, controller_distance, start_trainer
+from first_finetune_iteration import TRANSFERRED, controller_distance, controller_rollout, start_trainer
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule, TensorDictModuleBase
 from torch import nn
@@ -81,8 +92,11 @@ from modnet.config import held_out_env, saved_run, validate
 from modnet.envs import WorldEnv
 from modnet.evaluate import evaluating, rollout, score, training_env
 from modnet.gps.controller import LinearGaussianGains, time_filtered
+from modnet.gps.cost import QuadraticCost, expand_cost, time_weights
+from modnet.gps.dynamics import fit_dynamics
+from modnet.gps.lqr import lqr_backward, solve_kl_constrained_lqr
 from modnet.gps.sampling import STATE_KEYS, state_of
-from modnet.gps.trainer import C_STEPS
+from modnet.gps.trainer import C_STEPS, GPSTrainer
 from modnet.specs import TORQUE_LIMIT
 
 #: the Gaussian (steps) that :func:`variance_shares` filters the targets along time with
@@ -230,6 +244,90 @@ def takeover_distances(bank: ModuleBank, robot: str, task: str, scenes: WorldEnv
     return out
 
 
+def recentred(gains: LinearGaussianGains, K: torch.Tensor, path: torch.Tensor) -> LinearGaussianGains:
+    """``gains`` with the feedback ``K [M, T, dU, dX]`` instead of theirs, and the feed-forward
+    moved so that their mean action on ``path [M, T, dX]`` stays: ``k' = k + (K_old - K) x_t``.
+    The covariance stays.
+
+    Examples:
+        >>> M, T = 1, 2
+        >>> K, k = torch.ones(M, T, 1, 2).double(), torch.zeros(M, T, 1).double()
+        >>> old = LinearGaussianGains.from_covariance(K, k, torch.eye(1).expand(M, T, 1, 1))
+        >>> path = torch.tensor([[[1.0, 2.0], [3.0, 4.0]]]).double()
+        >>> new = recentred(old, torch.zeros(M, T, 1, 2).double(), path)
+        >>> new.mean_actions(path[:, None])[0, 0].flatten().tolist()  # old: 1 + 2, 3 + 4
+        [3.0, 7.0]
+    """
+    k = gains.k + ((gains.K - K) @ path.unsqueeze(-1)).squeeze(-1)
+    return LinearGaussianGains.from_covariance(K, k, gains.cov)
+
+
+def tracking_cost(X: torch.Tensor, action_dim: int, action_variance: float, weight: float) -> QuadraticCost:
+    """The quadratic cost ``[M, T]`` of tracking a path: each state entry's deviation over the
+    samples' spread of it (``X [M, N, T, dX]``, floored at 1e-3), squared, plus ``weight`` times
+    the ``action_dim`` torques' squares over ``action_variance``. Only its curvature shapes an
+    LQR's feedback gains, so its linear terms are zero.
+
+    Examples:
+        >>> cost = tracking_cost(torch.randn(2, 3, 4, 5), action_dim=2, action_variance=0.5, weight=0.1)
+        >>> cost.C.shape, cost.C[0, 0, -1, -1].item()  # each action entry: 0.1 / 0.5
+        (torch.Size([2, 4, 7, 7]), 0.2)
+    """
+    M, _, T, dX = X.shape
+    spread = X.reshape(-1, dX).to(torch.float64).std(0).clamp_min(1e-3)
+    torques = torch.full((action_dim,), weight / action_variance, dtype=torch.float64)
+    C = torch.diag(torch.cat([spread.pow(-2), torques])).expand(M, T, -1, -1).clone()
+    zero = torch.zeros(M, T, dX + action_dim + 1, dtype=torch.float64)
+    return QuadraticCost(C, zero[..., 1:], zero[..., 0])
+
+
+def refitted_feedback(trainer: GPSTrainer, weights: list[float]) -> dict[str, torch.Tensor]:
+    """Feedback gains for the held-out world's controllers from an LQR on the last samples'
+    model (the C-step's own, else dynamics fitted as the LQR's C-step fits them): ``track_<w>``
+    tracking with :func:`tracking_cost` of torque weight ``w``, ``task`` the C-step's
+    KL-constrained LQR on the task's cost."""
+    (state,) = trainer.states.values()
+    c, samples, gains = trainer.config, state.samples, state.controller.gains
+    dynamics, cost = state.current.dynamics, state.current.cost
+    if dynamics is None:  # PI2 fits no model
+        world = state.sampler.world
+        state.dynamics_prior.update(samples.X.transpose(0, 1), samples.U.transpose(0, 1))
+        dynamics = fit_dynamics(samples.X, samples.U, state.dynamics_prior, ridge=c.dynamics_ridge)
+        ramp = time_weights(state.sampler.horizon, c.cost_ramp, c.final_cost_multiplier)
+        cost = expand_cost(lambda x, u: world.state_cost(x, u, c.shaping), samples.X, samples.U, ramp)
+    variance = float(gains.cov.diagonal(dim1=-2, dim2=-1).mean())
+    tracking = {f"track_{w:g}": tracking_cost(samples.X, gains.action_dim, variance, w) for w in weights}
+    feedback = {name: lqr_backward(cost_, dynamics).gains.K for name, cost_ in tracking.items()}
+    feedback["task"] = solve_kl_constrained_lqr(cost, dynamics, gains, config=c.lqr()).gains.K
+    return feedback
+
+
+def takeover_refitted(
+    trainer: GPSTrainer, robot: str, task: str, scenes: WorldEnv, weights: list[float]
+) -> dict:
+    """:func:`takeover_distances` by the held-out world's controllers :func:`recentred` on their
+    mean path with each of :func:`refitted_feedback`'s gains (``kept``: their own), with where
+    those controllers end alone and their mean ``|K_t|``."""
+    (state,) = trainer.states.values()
+    controller, gains = state.controller, state.controller.gains
+    path = state_of(controller_rollout(scenes, trainer, gains)).to(torch.float64)
+    feedback = {"kept": gains.K, **refitted_feedback(trainer, weights)}
+    out = {}
+    try:
+        for name, K in feedback.items():
+            new = recentred(gains, K, path)
+            alone = controller_distance(scenes, trainer, new)
+            controller.set_gains(new)
+            out[name] = {
+                "controllers": round(alone, 4),
+                "takeover": takeover_distances(trainer.bank, robot, task, scenes, controller),
+                "feedback_norm": round(float(K.norm(dim=(-2, -1)).mean()), 4),
+            }
+    finally:
+        controller.set_gains(gains)
+    return out
+
+
 def score_policy(policy, env: WorldEnv) -> float:
     """Mean final distance of ``policy`` acting on ``env``."""
     with torch.no_grad():
@@ -287,9 +385,22 @@ def main() -> None:
     parser.add_argument("--c-step", choices=C_STEPS, default=None, help="default: the run's")
     parser.add_argument("--sgd-steps", type=int, default=5000, help="Adam steps of each regressor")
     parser.add_argument("--hidden", type=int, nargs="+", default=[80] * 5, help="the regressors' layers")
+    parser.add_argument(
+        "--pi2-covariance-damping", type=float, default=None, help="PI2's damping (default: the run's)"
+    )
+    parser.add_argument(
+        "--refit-weights",
+        type=float,
+        nargs="+",
+        default=[0.01, 0.1, 1.0],
+        help="torque weights of the tracking LQRs that takeover_refitted tries",
+    )
     args = parser.parse_args()
     if args.iterations < 1 or args.sgd_steps < 0 or min(args.hidden) < 1:
         parser.error("--iterations and every --hidden must be positive, --sgd-steps not negative")
+    damping = args.pi2_covariance_damping
+    if min(args.refit_weights) <= 0 or (damping is not None and damping <= 0):
+        parser.error("every --refit-weights and --pi2-covariance-damping must be positive")
 
     results = finished_run(parser, args.run_dir, (*FINISHED, ".hydra/config.yaml"))
     if args.start == "wrong_task" and "wrong_task" not in results["methods"]:
@@ -299,6 +410,8 @@ def main() -> None:
     options = {"algo": args.algo or run.finetune_gps_config().algo}
     if args.c_step:
         options["c_step"] = args.c_step
+    if args.pi2_covariance_damping is not None:
+        options["pi2_covariance_damping"] = args.pi2_covariance_damping
     if options["algo"] != "mdgps":  # BADMM's duals shift its targets, and it C-steps after the S-step
         parser.error("only MDGPS's S-step regresses onto the controllers' mean actions; use --algo mdgps")
     universe, split = validate(run)
@@ -381,6 +494,7 @@ def main() -> None:
         "hidden": args.hidden,
         "controllers": round(controller_distance(scenes, trainer, gains), 4),
         "takeover": takeover_distances(trainer.bank, robot, task, scenes, state.controller),
+        "takeover_refitted": takeover_refitted(trainer, robot, task, scenes, args.refit_weights),
         "sampled": round(float(state.samples.distance.mean()), 4),
         "untouched": round(float(scenes.start_distance(untouched).mean()), 4),
         "saturated": round(float((asked["fit"].abs() > TORQUE_LIMIT).double().mean()), 4),
@@ -394,6 +508,10 @@ def main() -> None:
     print(f"controllers end {out['controllers']:.3f}, untouched {out['untouched']:.3f}")
     takeover = ", ".join(f"at step {step} {d:.3f}" for step, d in out["takeover"].items())
     print(f"the network then the controllers from {takeover}")
+    for name, f in out["takeover_refitted"].items():
+        takeover = ", ".join(f"{step} {d:.3f}" for step, d in f["takeover"].items())
+        alone = f"alone {f['controllers']:.3f}"
+        print(f"feedback {name:11s} |K| {f['feedback_norm']:.3g}: {alone}, from step {takeover}")
     print(json.dumps(out))
 
 

@@ -543,6 +543,14 @@ def test_imitation_capacity_refits_the_networks_of_an_mdgps_fine_tuning(tiny_run
     assert network["distance_test"] == out["rerun_curve"][-1]
     assert refit["gap_fit"] < network["gap_fit"], out["networks"]
     assert len(out["takeover"]) == 3 and all(0 <= d < 10 for d in out["takeover"].values()), out["takeover"]
+    # other feedback gains, the controllers' noise-free path kept: alone they end where they did
+    refitted = out["takeover_refitted"]
+    assert set(refitted) == {"kept", "track_0.01", "track_0.1", "track_1", "task"}
+    assert refitted["kept"]["takeover"] == out["takeover"]
+    for name, figures in refitted.items():
+        assert figures["controllers"] == pytest.approx(out["controllers"], abs=1e-3), (name, figures)
+        assert list(figures["takeover"]) == list(out["takeover"]) and figures["feedback_norm"] >= 0
+    assert len({figures["feedback_norm"] for figures in refitted.values()}) == len(refitted)
 
 
 def published_finetuning(seed: int, sampled: dict, curves: dict, command_extra: str = "") -> dict:
