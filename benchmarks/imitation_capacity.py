@@ -51,7 +51,9 @@ moved so that the controllers' noise-free path stays the same (:func:`recentred`
 ``controllers`` figure repeats theirs). ``track_<w>`` tracks that path with the cost
 :func:`tracking_cost` (states scaled by the samples' spread, torques weighted ``w``);
 ``task`` is the KL-constrained LQR on the task's cost around the controllers, at
-fine-tuning's KL step. ``feedback_norm`` is each one's mean ``|K_t|`` (Frobenius).
+fine-tuning's KL step. ``feedback_norm`` is each one's mean ``|K_t|`` (Frobenius). Its
+``departure`` says how far from that path the network has led the arm when they take over,
+beside the width of the controllers' own tube of samples (:func:`departure`).
 
 ``saturated`` is the share of the controllers' mean torques at the samples beyond the limits;
 ``within_cell_share`` is the share of the targets' variance that lies within (condition, time
@@ -231,13 +233,18 @@ class Takeover(TensorDictModuleBase):
         return td
 
 
+def takeover_steps(horizon: int) -> tuple[int, int, int]:
+    """The steps at which the controllers take over: a quarter, half and three quarters in."""
+    return horizon // 4, horizon // 2, 3 * horizon // 4
+
+
 def takeover_distances(bank: ModuleBank, robot: str, task: str, scenes: WorldEnv, controller) -> dict:
     """:class:`Takeover` of the bank's network by ``controller`` (both mean actions: the
     controller's too, under :func:`~modnet.evaluate.evaluating`) on ``scenes`` at a quarter,
     half and three quarters of the horizon: where each ends."""
     out = {}
     with evaluating(bank):
-        for step in (scenes.horizon // 4, scenes.horizon // 2, 3 * scenes.horizon // 4):
+        for step in takeover_steps(scenes.horizon):
             actor = Takeover(bank.compose(robot, task), controller, step)
             td = scenes.rollout(scenes.horizon, actor, break_when_any_done=False)
             out[str(step)] = round(float(scenes.final_distance(td).mean()), 4)
@@ -262,6 +269,37 @@ def recentred(gains: LinearGaussianGains, K: torch.Tensor, path: torch.Tensor) -
     return LinearGaussianGains.from_covariance(K, k, gains.cov)
 
 
+def state_spread(X: torch.Tensor) -> torch.Tensor:
+    """Each state entry's standard deviation over samples ``X [..., dX]``, floored at 1e-3."""
+    return X.reshape(-1, X.shape[-1]).to(torch.float64).std(0).clamp_min(1e-3)
+
+
+def departure(visited: torch.Tensor, path: torch.Tensor, X: torch.Tensor, steps, labels) -> dict:
+    """How far states ``visited [M, T, dX]`` are from the controllers' noise-free ``path [M, T, dX]``
+    at each of ``steps``, in units of the samples' spread of each entry (:func:`state_spread` of
+    ``X [M, N, T, dX]``, the entries' range of motion): the root mean square over entries, mean
+    over conditions (``network``); the same for the samples themselves (``samples``, the width
+    of their tube); and the entry (``labels``) farthest away on average (``farthest``).
+
+    Examples:
+        >>> path = torch.zeros(1, 3, 2)
+        >>> X = torch.tensor([-1.0, 1.0]).reshape(1, 2, 1, 1).expand(1, 2, 3, 2)  # spread 1.095
+        >>> visited = torch.tensor([[[0.0, 0.0], [1.0, 0.0], [0.0, 3.0]]])
+        >>> out = departure(visited, path, X, [1, 2], ["a", "b"])
+        >>> out["network"], out["samples"], out["farthest"]
+        ({'1': 0.6455, '2': 1.9365}, {'1': 0.9129, '2': 0.9129}, {'1': 'a', '2': 'b'})
+    """
+    spread = state_spread(X)
+    away = ((visited - path) / spread).to(torch.float64)  # [M, T, dX]
+    tube = ((X - path.unsqueeze(1)) / spread).to(torch.float64)  # [M, N, T, dX]
+    rms = lambda d: d.square().mean(-1).sqrt()  # noqa: E731
+    return {
+        "network": {str(t): round(float(rms(away[:, t]).mean()), 4) for t in steps},
+        "samples": {str(t): round(float(rms(tube[:, :, t]).mean()), 4) for t in steps},
+        "farthest": {str(t): labels[int(away[:, t].abs().mean(0).argmax())] for t in steps},
+    }
+
+
 def tracking_cost(X: torch.Tensor, action_dim: int, action_variance: float, weight: float) -> QuadraticCost:
     """The quadratic cost ``[M, T]`` of tracking a path: each state entry's deviation over the
     samples' spread of it (``X [M, N, T, dX]``, floored at 1e-3), squared, plus ``weight`` times
@@ -274,7 +312,7 @@ def tracking_cost(X: torch.Tensor, action_dim: int, action_variance: float, weig
         (torch.Size([2, 4, 7, 7]), 0.2)
     """
     M, _, T, dX = X.shape
-    spread = X.reshape(-1, dX).to(torch.float64).std(0).clamp_min(1e-3)
+    spread = state_spread(X)
     torques = torch.full((action_dim,), weight / action_variance, dtype=torch.float64)
     C = torch.diag(torch.cat([spread.pow(-2), torques])).expand(M, T, -1, -1).clone()
     zero = torch.zeros(M, T, dX + action_dim + 1, dtype=torch.float64)
@@ -307,12 +345,16 @@ def takeover_refitted(
 ) -> dict:
     """:func:`takeover_distances` by the held-out world's controllers :func:`recentred` on their
     mean path with each of :func:`refitted_feedback`'s gains (``kept``: their own), with where
-    those controllers end alone and their mean ``|K_t|``."""
+    those controllers end alone and their mean ``|K_t|``; and under ``departure``, how far the
+    network (mean actions) is from that path at the steps they take over (:func:`departure`)."""
     (state,) = trainer.states.values()
     controller, gains = state.controller, state.controller.gains
     path = state_of(controller_rollout(scenes, trainer, gains)).to(torch.float64)
+    visited = state_of(rollout(trainer.bank, robot, task, scenes)[0]).to(torch.float64)
+    steps = takeover_steps(scenes.horizon)
+    labels = state.sampler.world.state_labels
+    out = {"departure": departure(visited, path, state.samples.X, steps, labels)}
     feedback = {"kept": gains.K, **refitted_feedback(trainer, weights)}
-    out = {}
     try:
         for name, K in feedback.items():
             new = recentred(gains, K, path)
@@ -508,7 +550,14 @@ def main() -> None:
     print(f"controllers end {out['controllers']:.3f}, untouched {out['untouched']:.3f}")
     takeover = ", ".join(f"at step {step} {d:.3f}" for step, d in out["takeover"].items())
     print(f"the network then the controllers from {takeover}")
-    for name, f in out["takeover_refitted"].items():
+    feedback = dict(out["takeover_refitted"])
+    away = feedback.pop("departure")
+    print(
+        "the network's distance from the controllers' path (in the entries' spread): "
+        + ", ".join(f"step {t} {d:.2f} ({away['farthest'][t]})" for t, d in away["network"].items())
+        + "; their samples' " + ", ".join(f"{d:.2f}" for d in away["samples"].values())
+    )
+    for name, f in feedback.items():
         takeover = ", ".join(f"{step} {d:.3f}" for step, d in f["takeover"].items())
         alone = f"alone {f['controllers']:.3f}"
         print(f"feedback {name:11s} |K| {f['feedback_norm']:.3g}: {alone}, from step {takeover}")

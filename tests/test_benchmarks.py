@@ -544,7 +544,10 @@ def test_imitation_capacity_refits_the_networks_of_an_mdgps_fine_tuning(tiny_run
     assert refit["gap_fit"] < network["gap_fit"], out["networks"]
     assert len(out["takeover"]) == 3 and all(0 <= d < 10 for d in out["takeover"].values()), out["takeover"]
     # other feedback gains, the controllers' noise-free path kept: alone they end where they did
-    refitted = out["takeover_refitted"]
+    refitted = dict(out["takeover_refitted"])
+    away = refitted.pop("departure")  # the network from the controllers' path, where they take over
+    assert list(away["network"]) == list(away["samples"]) == list(away["farthest"]) == list(out["takeover"])
+    assert all(d > 0 for d in away["samples"].values()), away  # the samples' noise
     assert set(refitted) == {"kept", "track_0.01", "track_0.1", "track_1", "task"}
     assert refitted["kept"]["takeover"] == out["takeover"]
     for name, figures in refitted.items():
