@@ -45,7 +45,6 @@ Prints a line per KL budget, then ONE JSON object on its last line.
 from __future__ import annotations
 
 import argparse
-import copy
 import dataclasses
 import json
 from pathlib import Path
@@ -131,7 +130,7 @@ def first_iteration(
             step(state, *args, **kwargs)
             if corrects_lqr:
                 lqr_parts.append(c_steps.pop())
-            c_steps.append(copy.deepcopy(state.controller.gains))
+            c_steps.append(state.controller.gains)  # a snapshot
             if s_step_onto == "linearisation":
                 state.controller.set_gains(state.current.gains)
 

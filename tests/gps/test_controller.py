@@ -139,6 +139,13 @@ def test_from_lqr_and_set_gains():
     other.set_gains(new)
     torch.testing.assert_close(other.gains.K, new.K)
     torch.testing.assert_close(other.gains.cov, new.cov)
+    kept = other.gains  # a snapshot: setting other gains leaves it, and setting it back restores
+    other.set_gains(random_gains(seed=2))
+    assert not torch.equal(other.gains.K, new.K)
+    for name in ("K", "k", "chol", "cov"):
+        torch.testing.assert_close(getattr(kept, name), getattr(new, name))
+    other.set_gains(kept)
+    torch.testing.assert_close(other.gains.k, new.k)
     bad = random_gains()
     bad.K[1, 2, 0, 0] = float("inf")
     with pytest.raises(NumericalError, match="condition=1"):

@@ -271,12 +271,14 @@ class LinearGaussianController(TensorDictModule):
     # ---- gains -------------------------------------------------------------------------
     @property
     def gains(self) -> LinearGaussianGains:
-        """The current gains (cov and precision recomputed from the Cholesky factor)."""
+        """A snapshot of the current gains (cov and precision recomputed from the Cholesky
+        factor): its tensors are copies, so a later :meth:`set_gains` leaves it as it was and
+        ``kept = ctrl.gains; ...; ctrl.set_gains(kept)`` restores them."""
         policy = self.module
-        cov = policy.chol @ policy.chol.transpose(-1, -2)
+        chol = policy.chol.detach().clone()
         return LinearGaussianGains(
-            K=policy.K, k=policy.k, cov=cov, chol=policy.chol,
-            precision=torch.cholesky_inverse(policy.chol),
+            K=policy.K.detach().clone(), k=policy.k.detach().clone(), cov=chol @ chol.transpose(-1, -2),
+            chol=chol, precision=torch.cholesky_inverse(chol),
         )
 
     def set_gains(self, gains: LinearGaussianGains) -> None:

@@ -336,11 +336,6 @@ class WorldState:
     diagnostics: dict[str, float] = field(default_factory=dict)
 
 
-def frozen(gains: LinearGaussianGains) -> LinearGaussianGains:
-    """A copy that later in-place updates of a controller's buffers cannot change."""
-    return LinearGaussianGains(**{name: t.detach().clone() for name, t in _fields_dict(gains).items()})
-
-
 class GPSTrainer:
     """Trains ``bank`` on ``worlds`` (``(robot, task)`` pairs) by guided policy search.
 
@@ -501,7 +496,7 @@ class GPSTrainer:
             for state in states:
                 if self.iteration == 0:  # and the controllers start there
                     state.controller.set_gains(state.policy)
-                state.current.gains = frozen(state.policy)
+                state.current.gains = state.policy
                 self._record_action_gap(state)  # against the linearisation it sampled with
         elif fresh:
             self._s_step(self.config.initial_sgd_steps, {s.name: self._controller_targets(s) for s in states})
@@ -552,7 +547,7 @@ class GPSTrainer:
                     iteration=self.iteration,
                 )
         state.previous = state.current
-        state.current = Linearised(frozen(state.controller.gains), dynamics, cost)
+        state.current = Linearised(state.controller.gains, dynamics, cost)  # a snapshot
         state.samples = samples
         state.diagnostics = {
             "sampled_cost": float(sampled.mean()),
