@@ -46,14 +46,15 @@ controllers' mean actions take over; where they end, by the step at which they t
 Under PI2 the controllers keep the feedback gains ``K_t`` of the distribution that first drew
 samples (the network's linearisation) and learn only their feed-forward, so ``takeover`` may
 fail for want of feedback. ``takeover_refitted`` tries others: the gains of an LQR on dynamics
-fitted to the last samples (the C-step's own, where it fits a model), with the feed-forward
-moved so that the controllers' noise-free path stays the same (:func:`recentred`; its
-``controllers`` figure repeats theirs). ``track_<w>`` tracks that path with the cost
-:func:`tracking_cost` (states scaled by the samples' spread, torques weighted ``w``);
-``task`` is the KL-constrained LQR on the task's cost around the controllers, at
-fine-tuning's KL step. ``feedback_norm`` is each one's mean ``|K_t|`` (Frobenius). Its
-``departure`` says how far from that path the network has led the arm when they take over,
-beside the width of the controllers' own tube of samples (:func:`departure`).
+fitted to the last iteration's samples (the C-step's own, where it fits a model), with the
+feed-forward moved so that the controllers' noise-free path stays the same (:func:`recentred`;
+its ``controllers`` figure repeats theirs). ``track_<w>`` tracks that path with the cost
+:func:`tracking_cost` (states scaled by their spread over the fresh draw of the controllers'
+samples, torques weighted ``w``); ``task`` is the KL-constrained LQR on the task's cost around
+the controllers, at the C-step's KL budget. ``feedback_norm`` is each one's mean ``|K_t|``
+(Frobenius). Its ``departure`` says how far from that path the network has led the arm when
+they take over, beside the width of the controllers' own tube of samples, the fresh draw
+(:func:`departure`).
 
 ``saturated`` is the share of the controllers' mean torques at the samples beyond the limits;
 ``within_cell_share`` is the share of the targets' variance that lies within (condition, time
@@ -77,6 +78,7 @@ from __future__ import annotations
 
 import argparse
 import copy
+import dataclasses
 import json
 import time
 from pathlib import Path
@@ -94,8 +96,7 @@ from modnet.config import held_out_env, saved_run, validate
 from modnet.envs import WorldEnv
 from modnet.evaluate import evaluating, rollout, score, training_env
 from modnet.gps.controller import LinearGaussianGains, time_filtered
-from modnet.gps.cost import QuadraticCost, expand_cost, time_weights
-from modnet.gps.dynamics import fit_dynamics
+from modnet.gps.cost import QuadraticCost
 from modnet.gps.lqr import lqr_backward, solve_kl_constrained_lqr
 from modnet.gps.sampling import STATE_KEYS, state_of
 from modnet.gps.trainer import C_STEPS, GPSTrainer
@@ -234,7 +235,12 @@ class Takeover(TensorDictModuleBase):
 
 
 def takeover_steps(horizon: int) -> tuple[int, int, int]:
-    """The steps at which the controllers take over: a quarter, half and three quarters in."""
+    """The steps at which the controllers take over: a quarter, half and three quarters in.
+
+    Examples:
+        >>> takeover_steps(100)
+        (25, 50, 75)
+    """
     return horizon // 4, horizon // 2, 3 * horizon // 4
 
 
@@ -266,11 +272,16 @@ def recentred(gains: LinearGaussianGains, K: torch.Tensor, path: torch.Tensor) -
         [3.0, 7.0]
     """
     k = gains.k + ((gains.K - K) @ path.unsqueeze(-1)).squeeze(-1)
-    return LinearGaussianGains.from_covariance(K, k, gains.cov)
+    return dataclasses.replace(gains, K=K.to(torch.float64), k=k)
 
 
 def state_spread(X: torch.Tensor) -> torch.Tensor:
-    """Each state entry's standard deviation over samples ``X [..., dX]``, floored at 1e-3."""
+    """Each state entry's standard deviation over samples ``X [..., dX]``, floored at 1e-3.
+
+    Examples:
+        >>> state_spread(torch.tensor([[0.0, 1.0], [2.0, 1.0]])).tolist()  # the second never moves
+        [1.4142135623730951, 0.001]
+    """
     return X.reshape(-1, X.shape[-1]).to(torch.float64).std(0).clamp_min(1e-3)
 
 
@@ -319,49 +330,50 @@ def tracking_cost(X: torch.Tensor, action_dim: int, action_variance: float, weig
     return QuadraticCost(C, zero[..., 1:], zero[..., 0])
 
 
-def refitted_feedback(trainer: GPSTrainer, weights: list[float]) -> dict[str, torch.Tensor]:
-    """Feedback gains for the held-out world's controllers from an LQR on the last samples'
-    model (the C-step's own, else dynamics fitted as the LQR's C-step fits them): ``track_<w>``
-    tracking with :func:`tracking_cost` of torque weight ``w``, ``task`` the C-step's
-    KL-constrained LQR on the task's cost."""
+def refitted_feedback(trainer: GPSTrainer, X: torch.Tensor, weights: list[float]) -> dict[str, torch.Tensor]:
+    """Feedback gains for the held-out world's controllers from an LQR on the last iteration's
+    model (the C-step's own, else fitted to its samples as the LQR's C-step fits one,
+    :meth:`~modnet.gps.trainer.GPSTrainer.fit_model`): ``track_<w>`` tracking with
+    :func:`tracking_cost` of torque weight ``w``, the states scaled by their spread over the
+    controllers' samples ``X [M, N, T, dX]``; ``task`` the KL-constrained LQR on the task's cost
+    around the controllers, at the C-step's KL budget (``kl_step`` times its step multiplier)."""
     (state,) = trainer.states.values()
-    c, samples, gains = trainer.config, state.samples, state.controller.gains
-    dynamics, cost = state.current.dynamics, state.current.cost
+    gains = state.controller.gains
+    cost, dynamics = state.current.cost, state.current.dynamics
     if dynamics is None:  # PI2 fits no model
-        world = state.sampler.world
-        state.dynamics_prior.update(samples.X.transpose(0, 1), samples.U.transpose(0, 1))
-        dynamics = fit_dynamics(samples.X, samples.U, state.dynamics_prior, ridge=c.dynamics_ridge)
-        ramp = time_weights(state.sampler.horizon, c.cost_ramp, c.final_cost_multiplier)
-        cost = expand_cost(lambda x, u: world.state_cost(x, u, c.shaping), samples.X, samples.U, ramp)
+        cost, dynamics = trainer.fit_model(state, state.samples)
     variance = float(gains.cov.diagonal(dim1=-2, dim2=-1).mean())
-    tracking = {f"track_{w:g}": tracking_cost(samples.X, gains.action_dim, variance, w) for w in weights}
+    tracking = {f"track_{w:g}": tracking_cost(X, gains.action_dim, variance, w) for w in weights}
     feedback = {name: lqr_backward(cost_, dynamics).gains.K for name, cost_ in tracking.items()}
-    feedback["task"] = solve_kl_constrained_lqr(cost, dynamics, gains, config=c.lqr()).gains.K
+    budget = dict(step_mult=state.step_mult, config=trainer.config.lqr())
+    feedback["task"] = solve_kl_constrained_lqr(cost, dynamics, gains, **budget).gains.K
     return feedback
 
 
 def takeover_refitted(
-    trainer: GPSTrainer, robot: str, task: str, scenes: WorldEnv, weights: list[float]
+    trainer: GPSTrainer, robot: str, task: str, scenes: WorldEnv, X: torch.Tensor, alone: TensorDictBase,
+    weights: list[float],
 ) -> dict:
     """:func:`takeover_distances` by the held-out world's controllers :func:`recentred` on their
     mean path with each of :func:`refitted_feedback`'s gains (``kept``: their own), with where
     those controllers end alone and their mean ``|K_t|``; and under ``departure``, how far the
-    network (mean actions) is from that path at the steps they take over (:func:`departure`)."""
+    network is from that path at the steps they take over (:func:`departure` of its rollout
+    ``alone`` on ``scenes``, mean actions, against the controllers' samples ``X``)."""
     (state,) = trainer.states.values()
     controller, gains = state.controller, state.controller.gains
-    path = state_of(controller_rollout(scenes, trainer, gains)).to(torch.float64)
-    visited = state_of(rollout(trainer.bank, robot, task, scenes)[0]).to(torch.float64)
+    path = state_of(controller_rollout(scenes, trainer, gains))
+    visited = state_of(alone)
     steps = takeover_steps(scenes.horizon)
     labels = state.sampler.world.state_labels
-    out = {"departure": departure(visited, path, state.samples.X, steps, labels)}
-    feedback = {"kept": gains.K, **refitted_feedback(trainer, weights)}
+    out = {"departure": departure(visited, path, X, steps, labels)}
+    feedback = {"kept": gains.K, **refitted_feedback(trainer, X, weights)}
     try:
         for name, K in feedback.items():
             new = recentred(gains, K, path)
-            alone = controller_distance(scenes, trainer, new)
+            ends = controller_distance(scenes, trainer, new)
             controller.set_gains(new)
             out[name] = {
-                "controllers": round(alone, 4),
+                "controllers": round(ends, 4),
                 "takeover": takeover_distances(trainer.bank, robot, task, scenes, controller),
                 "feedback_norm": round(float(K.norm(dim=(-2, -1)).mean()), 4),
             }
@@ -493,7 +505,7 @@ def main() -> None:
     flat = {part: t.reshape(-1, gains.action_dim) for part, t in targets.items()}
 
     world = trainer.bank.world(state.name)
-    untouched, _ = rollout(trainer.bank, robot, task, scenes)  # any policy: the scenes' start
+    alone, _ = rollout(trainer.bank, robot, task, scenes)  # the network alone (mean actions)
     by_obs = {part: (samples[part].obs, targets[part]) for part in samples}
     networks = {"network": bank_figures(trainer.bank, state.name, by_obs, scenes, tests, gains)}
     schedule = dict(steps=args.sgd_steps, seed=trainer.config.seed)
@@ -536,9 +548,11 @@ def main() -> None:
         "hidden": args.hidden,
         "controllers": round(controller_distance(scenes, trainer, gains), 4),
         "takeover": takeover_distances(trainer.bank, robot, task, scenes, state.controller),
-        "takeover_refitted": takeover_refitted(trainer, robot, task, scenes, args.refit_weights),
+        "takeover_refitted": takeover_refitted(
+            trainer, robot, task, scenes, samples["fresh"].X, alone, args.refit_weights
+        ),
         "sampled": round(float(state.samples.distance.mean()), 4),
-        "untouched": round(float(scenes.start_distance(untouched).mean()), 4),
+        "untouched": round(float(scenes.start_distance(alone).mean()), 4),  # any policy's start
         "saturated": round(float((asked["fit"].abs() > TORQUE_LIMIT).double().mean()), 4),
         **variance_shares(targets["fit"]),
         "target_norm": round(float(flat["fit"].clamp(-TORQUE_LIMIT, TORQUE_LIMIT).norm(dim=-1).mean()), 4),

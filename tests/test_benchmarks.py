@@ -548,12 +548,20 @@ def test_imitation_capacity_refits_the_networks_of_an_mdgps_fine_tuning(tiny_run
     away = refitted.pop("departure")  # the network from the controllers' path, where they take over
     assert list(away["network"]) == list(away["samples"]) == list(away["farthest"]) == list(out["takeover"])
     assert all(d > 0 for d in away["samples"].values()), away  # the samples' noise
+    assert all(d >= 0 for d in away["network"].values()), away
     assert set(refitted) == {"kept", "track_0.01", "track_0.1", "track_1", "task"}
     assert refitted["kept"]["takeover"] == out["takeover"]
     for name, figures in refitted.items():
         assert figures["controllers"] == pytest.approx(out["controllers"], abs=1e-3), (name, figures)
         assert list(figures["takeover"]) == list(out["takeover"]) and figures["feedback_norm"] >= 0
     assert len({figures["feedback_norm"] for figures in refitted.values()}) == len(refitted)
+    # under PI2, which fits no model, the gains come from dynamics fitted to its samples
+    pi2 = ["--c-step", "pi2", "--pi2-covariance-damping", "2", "--refit-weights", "0.1", "--hidden", "4"]
+    out = last_json("imitation_capacity.py", str(run_dir), *args[:4], "--sgd-steps", "1", *pi2)
+    refitted = out["takeover_refitted"]
+    assert out["c_step"] == "pi2" and set(refitted) == {"departure", "kept", "track_0.1", "task"}
+    for name in ("track_0.1", "task"):
+        assert refitted[name]["controllers"] == pytest.approx(out["controllers"], abs=1e-3), refitted
 
 
 def published_finetuning(seed: int, sampled: dict, curves: dict, command_extra: str = "") -> dict:

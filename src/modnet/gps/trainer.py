@@ -529,23 +529,7 @@ class GPSTrainer:
             with torch.no_grad():
                 state.sampled_costs = world.state_cost(samples.X, samples.U, c.shaping) * weights
                 sampled = state.sampled_costs.sum(-1)
-            cost = None
-            if c.fits_model:
-                task_cost = lambda x, u: world.state_cost(x, u, c.shaping)  # noqa: E731
-                cost = expand_cost(task_cost, samples.X, samples.U, weights)
-                check_finite("cost expansion", cost.C, world=state.name, iteration=self.iteration)
-        dynamics = None
-        if c.fits_model:
-            with self._timed("dynamics"):
-                self._update_dynamics_prior(state, samples)
-                dynamics = fit_dynamics(
-                    samples.X,
-                    samples.U,
-                    state.dynamics_prior,
-                    ridge=c.dynamics_ridge,
-                    world=state.name,
-                    iteration=self.iteration,
-                )
+        cost, dynamics = self.fit_model(state, samples) if c.fits_model else (None, None)
         state.previous = state.current
         state.current = Linearised(state.controller.gains, dynamics, cost)  # a snapshot
         state.samples = samples
@@ -553,6 +537,28 @@ class GPSTrainer:
             "sampled_cost": float(sampled.mean()),
             "distance": float(samples.distance.mean()),
         }
+
+    def fit_model(self, state: WorldState, samples: Samples) -> tuple[QuadraticCost, LinearGaussianDynamics]:
+        """The LQR's model of ``samples`` of ``state``'s world: the task's cost (shaped as
+        configured, weighted along time) expanded around them, and dynamics fitted to them,
+        after they join the dynamics prior."""
+        c, world = self.config, state.sampler.world
+        with self._timed("cost"):
+            weights = time_weights(state.sampler.horizon, c.cost_ramp, c.final_cost_multiplier)
+            task_cost = lambda x, u: world.state_cost(x, u, c.shaping)  # noqa: E731
+            cost = expand_cost(task_cost, samples.X, samples.U, weights)
+            check_finite("cost expansion", cost.C, world=state.name, iteration=self.iteration)
+        with self._timed("dynamics"):
+            self._update_dynamics_prior(state, samples)
+            dynamics = fit_dynamics(
+                samples.X,
+                samples.U,
+                state.dynamics_prior,
+                ridge=c.dynamics_ridge,
+                world=state.name,
+                iteration=self.iteration,
+            )
+        return cost, dynamics
 
     def _draw(self, state: WorldState, actor, sampler: WorldSampler | None = None) -> Samples:
         """One batch of trajectories from ``actor`` (N per condition, by the world's sampler
