@@ -314,9 +314,21 @@ def algorithms(run_dirs: list[Path], experiment: str) -> dict:
 _SAME_EXPERIMENT_IGNORES = ("seed=", "threads=", "logger=", "hydra.")
 
 
+#: options as older commits spelt them, and their spelling now (the same code path): before
+#: d0efcfb the relabelling was a flag, ``true`` what ``sampled`` is now
+_RENAMED_OPTIONS = {"eval.finetune_relabel_policy_states=true": "eval.finetune_relabel_policy_states=sampled"}
+
+
 def _experiment_of(command: str) -> str:
-    """A published command without its seed and without options that do not change the numbers."""
-    return " ".join(o for o in command.split() if not o.startswith(_SAME_EXPERIMENT_IGNORES))
+    """A published command without its seed and without options that do not change the numbers,
+    each option spelt as it is now.
+
+    Examples:
+        >>> _experiment_of("python run.py seed=3 logger=csv eval.finetune_relabel_policy_states=true")
+        'python run.py eval.finetune_relabel_policy_states=sampled'
+    """
+    options = (_RENAMED_OPTIONS.get(o, o) for o in command.split())
+    return " ".join(o for o in options if not o.startswith(_SAME_EXPERIMENT_IGNORES))
 
 
 def _log_scale(ax) -> None:

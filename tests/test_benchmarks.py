@@ -594,6 +594,15 @@ def test_finetune_figure_groups_seeds_into_experiments_and_finds_each_starts_fir
     # at two seeds of the same length a thick median is drawn beside each seed's thin line
     assert [line.get_linewidth() for line in fig.axes[0].get_lines()][:3] == [0.7, 0.7, 2.2]
 
+    # a run of an older commit that spelt an option differently joins its experiment
+    relabelled = [
+        published_finetuning(0, {"composed": [0.1]}, {}, " eval.finetune_relabel_policy_states=true"),
+        published_finetuning(1, {"composed": [0.1]}, {}, " eval.finetune_relabel_policy_states=sampled"),
+    ]
+    _, summary = publish.finetune_figure(relabelled)
+    assert list(summary["experiments"]) == ["(no further options)"]
+    assert summary["experiments"]["(no further options)"]["seeds"] == [0, 1]
+
     bad = [published_finetuning(0, {}, {"composed": [0.15]})]
     with pytest.raises(ValueError, match="recorded no samples"):
         publish.finetune_figure(bad)
