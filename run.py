@@ -68,6 +68,7 @@ NEWER_OPTIONS = {
     "gps.pi2_covariance_damping": GPSConfig.pi2_covariance_damping,
     "gps.train_modules": "all",
     "gps.relabel_policy_states": "off",
+    "gps.relabel_tracking_weight": None,
 }
 
 

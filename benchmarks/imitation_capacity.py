@@ -47,7 +47,7 @@ Under PI2 the controllers keep the feedback gains ``K_t`` of the distribution th
 samples (the network's linearisation) and learn only their feed-forward, so ``takeover`` may
 fail for want of feedback. ``takeover_refitted`` tries others: the gains of an LQR on dynamics
 fitted to the last iteration's samples (the C-step's own, where it fits a model), with the
-feed-forward moved so that the controllers' noise-free path stays the same (:func:`recentred`;
+feed-forward moved so that the controllers' noise-free path stays the same (``with_feedback``;
 its ``controllers`` figure repeats theirs). ``track_<w>`` tracks that path with the cost
 :func:`tracking_cost` (states scaled by their spread over the fresh draw of the controllers'
 samples, torques weighted ``w``); ``task`` is the KL-constrained LQR on the task's cost around
@@ -78,7 +78,6 @@ from __future__ import annotations
 
 import argparse
 import copy
-import dataclasses
 import json
 import time
 from pathlib import Path
@@ -96,7 +95,7 @@ from modnet.config import held_out_env, saved_run, validate
 from modnet.envs import WorldEnv
 from modnet.evaluate import evaluating, rollout, score, training_env
 from modnet.gps.controller import LinearGaussianGains, time_filtered
-from modnet.gps.cost import QuadraticCost
+from modnet.gps.cost import state_spread, tracking_cost
 from modnet.gps.lqr import lqr_backward, solve_kl_constrained_lqr
 from modnet.gps.sampling import STATE_KEYS, state_of
 from modnet.gps.trainer import C_STEPS, GPSTrainer
@@ -257,34 +256,6 @@ def takeover_distances(bank: ModuleBank, robot: str, task: str, scenes: WorldEnv
     return out
 
 
-def recentred(gains: LinearGaussianGains, K: torch.Tensor, path: torch.Tensor) -> LinearGaussianGains:
-    """``gains`` with the feedback ``K [M, T, dU, dX]`` instead of theirs, and the feed-forward
-    moved so that their mean action on ``path [M, T, dX]`` stays: ``k' = k + (K_old - K) x_t``.
-    The covariance stays.
-
-    Examples:
-        >>> M, T = 1, 2
-        >>> K, k = torch.ones(M, T, 1, 2).double(), torch.zeros(M, T, 1).double()
-        >>> old = LinearGaussianGains.from_covariance(K, k, torch.eye(1).expand(M, T, 1, 1))
-        >>> path = torch.tensor([[[1.0, 2.0], [3.0, 4.0]]]).double()
-        >>> new = recentred(old, torch.zeros(M, T, 1, 2).double(), path)
-        >>> new.mean_actions(path[:, None])[0, 0].flatten().tolist()  # old: 1 + 2, 3 + 4
-        [3.0, 7.0]
-    """
-    k = gains.k + ((gains.K - K) @ path.unsqueeze(-1)).squeeze(-1)
-    return dataclasses.replace(gains, K=K.to(torch.float64), k=k)
-
-
-def state_spread(X: torch.Tensor) -> torch.Tensor:
-    """Each state entry's standard deviation over samples ``X [..., dX]``, floored at 1e-3.
-
-    Examples:
-        >>> state_spread(torch.tensor([[0.0, 1.0], [2.0, 1.0]])).tolist()  # the second never moves
-        [1.4142135623730951, 0.001]
-    """
-    return X.reshape(-1, X.shape[-1]).to(torch.float64).std(0).clamp_min(1e-3)
-
-
 def departure(visited: torch.Tensor, path: torch.Tensor, X: torch.Tensor, steps, labels) -> dict:
     """How far states ``visited [M, T, dX]`` are from the controllers' noise-free ``path [M, T, dX]``
     at each of ``steps``, in units of the samples' spread of each entry (:func:`state_spread` of
@@ -311,25 +282,6 @@ def departure(visited: torch.Tensor, path: torch.Tensor, X: torch.Tensor, steps,
     }
 
 
-def tracking_cost(X: torch.Tensor, action_dim: int, action_variance: float, weight: float) -> QuadraticCost:
-    """The quadratic cost ``[M, T]`` of tracking a path: each state entry's deviation over the
-    samples' spread of it (``X [M, N, T, dX]``, floored at 1e-3), squared, plus ``weight`` times
-    the ``action_dim`` torques' squares over ``action_variance``. Only its curvature shapes an
-    LQR's feedback gains, so its linear terms are zero.
-
-    Examples:
-        >>> cost = tracking_cost(torch.randn(2, 3, 4, 5), action_dim=2, action_variance=0.5, weight=0.1)
-        >>> cost.C.shape, cost.C[0, 0, -1, -1].item()  # each action entry: 0.1 / 0.5
-        (torch.Size([2, 4, 7, 7]), 0.2)
-    """
-    M, _, T, dX = X.shape
-    spread = state_spread(X)
-    torques = torch.full((action_dim,), weight / action_variance, dtype=torch.float64)
-    C = torch.diag(torch.cat([spread.pow(-2), torques])).expand(M, T, -1, -1).clone()
-    zero = torch.zeros(M, T, dX + action_dim + 1, dtype=torch.float64)
-    return QuadraticCost(C, zero[..., 1:], zero[..., 0])
-
-
 def refitted_feedback(trainer: GPSTrainer, X: torch.Tensor, weights: list[float]) -> dict[str, torch.Tensor]:
     """Feedback gains for the held-out world's controllers from an LQR on the last iteration's
     model (the C-step's own, else fitted to its samples as the LQR's C-step fits one,
@@ -354,7 +306,7 @@ def takeover_refitted(
     trainer: GPSTrainer, robot: str, task: str, scenes: WorldEnv, X: torch.Tensor, alone: TensorDictBase,
     weights: list[float],
 ) -> dict:
-    """:func:`takeover_distances` by the held-out world's controllers :func:`recentred` on their
+    """:func:`takeover_distances` by the held-out world's controllers ``with_feedback`` on their
     mean path with each of :func:`refitted_feedback`'s gains (``kept``: their own), with where
     those controllers end alone and their mean ``|K_t|``; and under ``departure``, how far the
     network is from that path at the steps they take over (:func:`departure` of its rollout
@@ -369,7 +321,7 @@ def takeover_refitted(
     feedback = {"kept": gains.K, **refitted_feedback(trainer, X, weights)}
     try:
         for name, K in feedback.items():
-            new = recentred(gains, K, path)
+            new = gains.with_feedback(K, path)
             ends = controller_distance(scenes, trainer, new)
             controller.set_gains(new)
             out[name] = {

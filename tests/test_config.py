@@ -98,6 +98,14 @@ def test_overrides_reach_the_library_configs():
     kept = dataclasses.replace(exploring.gps_config(), pi2_covariance_damping=1e6)
     assert exploring.finetune_gps_config() == kept
     assert exploring.gps_config().pi2_covariance_damping == GPSConfig.pi2_covariance_damping
+    tracking = composed(
+        "universe=tiny",
+        "algo=mdgps",
+        "eval.finetune_relabel_policy_states=mean",
+        "eval.finetune_relabel_tracking_weight=1e-5",
+    )
+    assert tracking.finetune_gps_config() == dataclasses.replace(by_mean, relabel_tracking_weight=1e-5)
+    assert tracking.gps_config().relabel_tracking_weight is None
 
 
 def test_mdgps_only_options_under_badmm_are_refused_before_any_work_naming_the_fix():
@@ -151,6 +159,11 @@ def test_literal_choices_and_values_no_type_rules_out_fail_with_the_key():
             r"finetune_pi2_covariance_damping=-1\.0: gps\.pi2_kl and gps\.pi2_covariance_damping must be",
         ),
         ("gps.relabel_policy_states", "yes", r"gps\.relabel_policy_states must be one of 'off', 'sampled'"),
+        (
+            "eval.finetune_relabel_tracking_weight",
+            0.1,
+            r"finetune_relabel_tracking_weight=0\.1: gps\.relabel_tracking_weight .* sampled or mean",
+        ),
     ]:
         run = RunConfig(universe="tiny")
         *path, name = key.split(".")

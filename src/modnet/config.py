@@ -210,6 +210,10 @@ class EvalConfig:
             shrinks its exploration (larger: slower; :class:`~modnet.gps.GPSConfig`'s
             ``pi2_covariance_damping``); None: ``gps.pi2_covariance_damping``. Not part of a
             checkpoint's identity.
+        finetune_relabel_tracking_weight: with ``finetune_relabel_policy_states``, label the
+            network's states with the controllers' feedback fitted anew by a tracking LQR of
+            this torque weight (:class:`~modnet.gps.GPSConfig`'s ``relabel_tracking_weight``);
+            None: ``gps.relabel_tracking_weight``. Not part of a checkpoint's identity.
     """
 
     conditions: str = "test"
@@ -235,6 +239,7 @@ class EvalConfig:
     finetune_relabel_policy_states: str | None = None
     finetune_init_variance: float | None = None
     finetune_pi2_covariance_damping: float | None = None
+    finetune_relabel_tracking_weight: float | None = None
 
 
 #: the GPSConfig fields an ``eval.finetune_<field>`` sets for the fine-tuning starts alone
@@ -252,6 +257,7 @@ FINETUNE_GPS_OVERRIDES = (
     "relabel_policy_states",
     "init_variance",
     "pi2_covariance_damping",
+    "relabel_tracking_weight",
 )
 
 

@@ -717,6 +717,53 @@ def test_relabelling_is_an_mdgps_s_step():
         GPSConfig(relabel_policy_states="sampled")
 
 
+@pytest.mark.parametrize("c_step", ["lqr", "pi2"])
+def test_a_tracking_weight_relabels_with_the_controllers_feedback_fitted_anew(c_step):
+    """``relabel_tracking_weight``: the network's states are labelled by the controllers with
+    feedback gains from an LQR tracking their noise-free path (one more mean rollout per
+    condition, counted), on the C-step's model or, under PI2, one fitted to the samples: the
+    same actions on that path, other ones off it."""
+    relabelling = dict(relabel_policy_states="mean", relabel_tracking_weight=1e-3)
+    trainer = trainer_for(worlds=GRID[:1], algo="mdgps", c_step=c_step, **relabelling)
+    (state,) = trainer.states.values()
+    drawn, experts = [], []
+    original_sample, original_tracking = WorldSampler.sample, GPSTrainer._tracking
+
+    def spy(sampler, actor=None):
+        out = original_sample(sampler, actor)
+        drawn.append(("controllers" if actor is state.controller else "policy", out))
+        return out
+
+    def tracking(self, state):
+        experts.append(original_tracking(self, state))
+        return experts[-1]
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(WorldSampler, "sample", spy)
+        patch.setattr(GPSTrainer, "_tracking", tracking)
+        for _ in range(2):
+            trainer.step()
+    assert [who for who, _ in drawn] == ["controllers", "policy", "controllers"] * 2
+    (_, samples), (_, visited), (_, path) = drawn[-3:]
+    M, N, T = samples.X.shape[:3]
+    assert path.X.shape[:3] == visited.X.shape[:3] == (M, 1, T)
+    assert trainer.samples["trajectories"] == 2 * M * (N + 2)
+    expert, controllers = experts[-1], state.controller.gains
+    assert not torch.allclose(expert.K, controllers.K)
+    torch.testing.assert_close(expert.mean_actions(path.X), controllers.mean_actions(path.X))  # on the path
+    labels = expert.mean_actions(visited.X)
+    assert not torch.allclose(labels, controllers.mean_actions(visited.X))  # off it
+    relabelled = state.regression_data.storage[:][M * N * T :]
+    torch.testing.assert_close(relabelled["target_action"], labels.reshape(-1, 3).to(torch.float32))
+
+
+def test_a_tracking_weight_needs_relabelling_and_must_be_positive():
+    with pytest.raises(ValueError, match="relabel_tracking_weight.*positive.*sampled or mean"):
+        GPSConfig(algo="mdgps", relabel_tracking_weight=0.1)
+    with pytest.raises(ValueError, match="relabel_tracking_weight.*got -1.0 with 'mean'"):
+        GPSConfig(algo="mdgps", relabel_policy_states="mean", relabel_tracking_weight=-1.0)
+
+
 def test_the_first_controllers_explore_with_init_variance_and_the_first_samples_spread_with_it():
     """``init_variance`` is the spread of a scratch start's first controllers (``eval.finetune_init_variance``
     widens fine-tuning's scratch starts): their covariance, and the spread of the torques they draw."""

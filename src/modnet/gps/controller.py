@@ -22,7 +22,7 @@ Examples:
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
 import torch
@@ -153,6 +153,23 @@ class LinearGaussianGains:
         """``K_t x + k_t`` for trajectories ``X [M, N, T, dX]`` -> ``[M, N, T, dU]``."""
         X = X.to(torch.float64)
         return torch.einsum("mtux,mntx->mntu", self.K, X) + self.k[:, None]
+
+    def with_feedback(self, K: torch.Tensor, path: torch.Tensor) -> LinearGaussianGains:
+        """These gains with the feedback ``K [M, T, dU, dX]`` instead, the feed-forward moved so
+        that the mean action along ``path [M, T, dX]`` stays (``k' = k + (K_old - K) x_t``): the
+        same controllers on that path, other ones off it. The covariance stays.
+
+        Examples:
+            >>> old = LinearGaussianGains.from_covariance(
+            ...     torch.ones(1, 2, 1, 2), torch.zeros(1, 2, 1), torch.eye(1).expand(1, 2, 1, 1))
+            >>> path = torch.tensor([[[1.0, 2.0], [3.0, 4.0]]])
+            >>> new = old.with_feedback(torch.zeros(1, 2, 1, 2), path)
+            >>> new.mean_actions(path[:, None]).flatten().tolist()  # old: 1 + 2, 3 + 4
+            [3.0, 7.0]
+        """
+        K = K.to(torch.float64)
+        k = self.k + ((self.K - K) @ path.to(torch.float64).unsqueeze(-1)).squeeze(-1)
+        return replace(self, K=K, k=k)
 
 
 class _LinearGaussianPolicy(nn.Module):

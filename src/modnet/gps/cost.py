@@ -36,7 +36,9 @@ __all__ = [
     "cost_derivatives",
     "expand_cost",
     "recentre",
+    "state_spread",
     "time_weights",
+    "tracking_cost",
 ]
 
 Ramp = Literal["constant", "linear", "quadratic", "final_only"]
@@ -184,3 +186,33 @@ def expand_cost(
     return QuadraticCost(
         C=per_sample.C.mean(dim=1), c=per_sample.c.mean(dim=1), cc=per_sample.cc.mean(dim=1)
     )
+
+
+def state_spread(X: torch.Tensor) -> torch.Tensor:
+    """Each state entry's standard deviation over samples ``X [..., dX]``, floored at 1e-3.
+
+    Examples:
+        >>> state_spread(torch.tensor([[0.0, 1.0], [2.0, 1.0]])).tolist()  # the second never moves
+        [1.4142135623730951, 0.001]
+    """
+    return X.reshape(-1, X.shape[-1]).to(torch.float64).std(0).clamp_min(1e-3)
+
+
+def tracking_cost(X: torch.Tensor, action_dim: int, action_variance: float, weight: float) -> QuadraticCost:
+    """The curvature ``[M, T]`` of a cost for tracking a path: each state entry's deviation over
+    its spread over the samples ``X [M, N, T, dX]`` (:func:`state_spread`), squared, plus
+    ``weight`` times the ``action_dim`` torques' squares over ``action_variance`` (torques in
+    units of the controllers' own spread, as the KL-constrained LQR weighs them). An LQR's
+    feedback gains depend on the cost's curvature alone, so its linear terms are zero; a
+    smaller ``weight`` gives stiffer gains.
+
+    Examples:
+        >>> cost = tracking_cost(torch.randn(2, 3, 4, 5), action_dim=2, action_variance=0.5, weight=0.1)
+        >>> cost.C.shape, cost.C[0, 0, -1, -1].item()  # each action entry: 0.1 / 0.5
+        (torch.Size([2, 4, 7, 7]), 0.2)
+    """
+    M, _, T, dX = X.shape
+    torques = torch.full((action_dim,), weight / action_variance, dtype=torch.float64)
+    C = torch.diag(torch.cat([state_spread(X).pow(-2), torques])).expand(M, T, -1, -1).clone()
+    zero = torch.zeros(M, T, dX + action_dim + 1, dtype=torch.float64)
+    return QuadraticCost(C, zero[..., 1:], zero[..., 0])

@@ -46,7 +46,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from modnet.bank import ModuleBank
 from modnet.gps.badmm import BADMMConfig, Multipliers, badmm_cost, badmm_targets, dual_step
 from modnet.gps.controller import LinearGaussianController, LinearGaussianGains
-from modnet.gps.cost import QuadraticCost, Ramp, expand_cost, time_weights
+from modnet.gps.cost import QuadraticCost, Ramp, expand_cost, time_weights, tracking_cost
 from modnet.gps.dynamics import (
     DynamicsPriorConfig,
     DynamicsPriorGMM,
@@ -58,7 +58,15 @@ from modnet.gps.dynamics import (
 )
 from modnet.gps.errors import NumericalError, check_finite
 from modnet.gps.loss import PolicyRegressionLoss
-from modnet.gps.lqr import LQRConfig, LQRResult, adapt_step_mult, kl_divergence, laplace_cost, lqr_forward
+from modnet.gps.lqr import (
+    LQRConfig,
+    LQRResult,
+    adapt_step_mult,
+    kl_divergence,
+    laplace_cost,
+    lqr_backward,
+    lqr_forward,
+)
 from modnet.gps.lqr import solve_kl_constrained_lqr as c_step
 from modnet.gps.pi2 import PI2Result, pi2_update, pilqr_update
 from modnet.gps.sampling import POLICY_KEYS, STATE_KEYS, Samples, WorldSampler, state_of
@@ -203,6 +211,14 @@ class GPSConfig:
     #: network a narrow tube of states, and acting alone it leaves it (RESULTS, "the authors'
     #: fine-tuning protocol"). Off by default (RESULTS, "relabelling the network's own states")
     relabel_policy_states: Literal["off", "sampled", "mean"] = "off"
+    #: With ``relabel_policy_states``: None labels the network's states with the controllers as
+    #: they are; a weight labels them with the controllers' feedback gains fitted anew, an LQR
+    #: tracking their noise-free path on this iteration's model (:func:`tracking_cost` with this
+    #: torque weight, relative to the controllers' action variance; smaller: stiffer), the same
+    #: mean actions on that path. PI2 keeps the feedback of the network's first linearisation,
+    #: which does not bring the arm back from where the network leads it (RESULTS, "a better
+    #: expert for DAgger?")
+    relabel_tracking_weight: float | None = None
     #: PI2 and PILQR: the KL from uniform of each step's sample weights (the GPS code's ``kl_threshold``;
     #: at most log N, all weight on the best sample)
     pi2_kl: float = 1.0
@@ -252,6 +268,14 @@ class GPSConfig:
             raise ValueError(
                 f"gps.relabel_policy_states must be one of {', '.join(RELABELLINGS)}, "
                 f"got {self.relabel_policy_states!r}"
+            )
+        if self.relabel_tracking_weight is not None and not (
+            self.relabel_tracking_weight > 0 and self.relabel_policy_states != "off"
+        ):
+            raise ValueError(
+                "gps.relabel_tracking_weight weighs the torques of the relabelling's tracking LQR: it "
+                "must be positive, with gps.relabel_policy_states sampled or mean (got "
+                f"{self.relabel_tracking_weight} with {self.relabel_policy_states!r}), or null"
             )
         if self.relabel_policy_states != "off" and self.algo != "mdgps":
             raise ValueError(
@@ -832,19 +856,18 @@ class GPSTrainer:
 
     def _relabelled_targets(self, state: WorldState) -> TensorDictBase:
         """The composed policy rolled out alone, its states labelled with the controllers' mean
-        actions (``relabel_policy_states``); records where it ended (``policy_distance``) and
+        actions (``relabel_policy_states``; with ``relabel_tracking_weight``, the controllers'
+        with their feedback fitted anew); records where it ended (``policy_distance``) and
         how far its actions were from those labels (``relabel_gap``, against ``action_gap`` at
         the controllers' samples)."""
         with self._timed("sampling"):
             if self.config.relabel_policy_states == "mean":
-                if state.mean_sampler is None:
-                    world = state.sampler.world
-                    state.mean_sampler = self._new_sampler(world.robot.name, world.task.name, 1)
-                with set_exploration_type(ExplorationType.DETERMINISTIC):
-                    visited = self._draw(state, self._composed(state), state.mean_sampler)
+                visited = self._draw_mean(state, self._composed(state))
             else:
                 visited = self._draw(state, self._composed(state))
-        target = state.controller.gains.mean_actions(visited.X)
+        tracks = self.config.relabel_tracking_weight is not None
+        expert = self._tracking(state) if tracks else state.controller.gains
+        target = expert.mean_actions(visited.X)
         with self._timed("policy"), self._acting(), torch.no_grad():
             (out,) = self._forward_samples([state], [visited.obs])
         mean = out["loc"].to(torch.float64)
@@ -852,6 +875,31 @@ class GPSTrainer:
         state.diagnostics["relabel_gap"] = float((target - mean).norm(dim=-1).mean())
         weights = torch.ones(visited.X.shape[:-1], dtype=torch.float64)
         return self._targets(state, target, weights, obs=visited.obs)
+
+    def _draw_mean(self, state: WorldState, actor) -> Samples:
+        """One trajectory per condition of ``actor``'s mean actions, in an env of its own (so
+        the samples' random stream is left as it was)."""
+        if state.mean_sampler is None:
+            world = state.sampler.world
+            state.mean_sampler = self._new_sampler(world.robot.name, world.task.name, 1)
+        with set_exploration_type(ExplorationType.DETERMINISTIC):
+            return self._draw(state, actor, state.mean_sampler)
+
+    def _tracking(self, state: WorldState) -> LinearGaussianGains:
+        """The controllers with feedback gains fitted anew (``relabel_tracking_weight``): an LQR
+        tracking their noise-free path on this iteration's model (the C-step's, else fitted as
+        the LQR's C-step fits one), the states scaled by their spread over the samples."""
+        gains = state.controller.gains
+        with self._timed("sampling"):
+            path = self._draw_mean(state, state.controller).X[:, 0]
+        dynamics = state.current.dynamics
+        if dynamics is None:  # PI2 fits no model
+            _, dynamics = self.fit_model(state, state.samples)
+        variance = float(gains.cov.diagonal(dim1=-2, dim2=-1).mean())
+        cost = tracking_cost(state.samples.X, gains.action_dim, variance, self.config.relabel_tracking_weight)
+        with self._timed("lqr"):
+            K = lqr_backward(cost, dynamics, world=state.name, iteration=self.iteration).gains.K
+        return gains.with_feedback(K, path)
 
     def _badmm_targets(self, state: WorldState) -> TensorDictBase:
         target, weights = badmm_targets(state.controller.gains, state.duals, state.samples.X)
