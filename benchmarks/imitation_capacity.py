@@ -48,13 +48,13 @@ samples (the network's linearisation) and learn only their feed-forward, so ``ta
 fail for want of feedback. ``takeover_refitted`` tries others: the gains of an LQR on dynamics
 fitted to the last iteration's samples (the C-step's own, where it fits a model), with the
 feed-forward moved so that the controllers' noise-free path stays the same (``with_feedback``;
-its ``controllers`` figure repeats theirs). ``track_<w>`` tracks that path with the cost
-:func:`tracking_cost` (states scaled by their spread over the fresh draw of the controllers'
-samples, torques weighted ``w``); ``task`` is the KL-constrained LQR on the task's cost around
-the controllers, at the C-step's KL budget. ``feedback_norm`` is each one's mean ``|K_t|``
-(Frobenius). Its ``departure`` says how far from that path the network has led the arm when
-they take over, beside the width of the controllers' own tube of samples, the fresh draw
-(:func:`departure`).
+its ``controllers`` figure repeats theirs). ``track_<w>`` tracks that path
+(:func:`~modnet.gps.lqr.tracking_feedback`: states scaled by their spread over the fresh draw
+of the controllers' samples, torques weighted ``w``); ``task`` is the KL-constrained LQR on
+the task's cost around the controllers, at the C-step's KL budget. ``feedback_norm`` is each
+one's mean ``|K_t|`` (Frobenius). Its ``departure`` says how far from that path the network
+has led the arm when they take over, beside the width of the controllers' own tube of samples,
+the fresh draw (:func:`departure`).
 
 ``saturated`` is the share of the controllers' mean torques at the samples beyond the limits;
 ``within_cell_share`` is the share of the targets' variance that lies within (condition, time
@@ -95,8 +95,8 @@ from modnet.config import held_out_env, saved_run, validate
 from modnet.envs import WorldEnv
 from modnet.evaluate import evaluating, rollout, score, training_env
 from modnet.gps.controller import LinearGaussianGains, time_filtered
-from modnet.gps.cost import state_spread, tracking_cost
-from modnet.gps.lqr import lqr_backward, solve_kl_constrained_lqr
+from modnet.gps.cost import state_spread
+from modnet.gps.lqr import solve_kl_constrained_lqr, tracking_feedback
 from modnet.gps.sampling import STATE_KEYS, state_of
 from modnet.gps.trainer import C_STEPS, GPSTrainer
 from modnet.specs import TORQUE_LIMIT
@@ -284,21 +284,17 @@ def departure(visited: torch.Tensor, path: torch.Tensor, X: torch.Tensor, steps,
 
 def refitted_feedback(trainer: GPSTrainer, X: torch.Tensor, weights: list[float]) -> dict[str, torch.Tensor]:
     """Feedback gains for the held-out world's controllers from an LQR on the last iteration's
-    model (the C-step's own, else fitted to its samples as the LQR's C-step fits one,
-    :meth:`~modnet.gps.trainer.GPSTrainer.fit_model`): ``track_<w>`` tracking with
-    :func:`tracking_cost` of torque weight ``w``, the states scaled by their spread over the
-    controllers' samples ``X [M, N, T, dX]``; ``task`` the KL-constrained LQR on the task's cost
-    around the controllers, at the C-step's KL budget (``kl_step`` times its step multiplier)."""
+    model (:meth:`~modnet.gps.trainer.GPSTrainer.iteration_dynamics` and ``iteration_cost``):
+    ``track_<w>``, :func:`~modnet.gps.lqr.tracking_feedback` of torque weight ``w``, the states
+    scaled by their spread over the controllers' samples ``X [M, N, T, dX]``; ``task`` the
+    KL-constrained LQR on the task's cost around the controllers, at the C-step's KL budget
+    (``kl_step`` times its step multiplier)."""
     (state,) = trainer.states.values()
-    gains = state.controller.gains
-    cost, dynamics = state.current.cost, state.current.dynamics
-    if dynamics is None:  # PI2 fits no model
-        cost, dynamics = trainer.fit_model(state, state.samples)
-    variance = float(gains.cov.diagonal(dim1=-2, dim2=-1).mean())
-    tracking = {f"track_{w:g}": tracking_cost(X, gains.action_dim, variance, w) for w in weights}
-    feedback = {name: lqr_backward(cost_, dynamics).gains.K for name, cost_ in tracking.items()}
+    gains, dynamics = state.controller.gains, trainer.iteration_dynamics(state)
+    feedback = {f"track_{w:g}": tracking_feedback(dynamics, X, gains, w) for w in weights}
     budget = dict(step_mult=state.step_mult, config=trainer.config.lqr())
-    feedback["task"] = solve_kl_constrained_lqr(cost, dynamics, gains, **budget).gains.K
+    task = solve_kl_constrained_lqr(trainer.iteration_cost(state), dynamics, gains, **budget)
+    feedback["task"] = task.gains.K
     return feedback
 
 

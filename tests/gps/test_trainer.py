@@ -717,13 +717,13 @@ def test_relabelling_is_an_mdgps_s_step():
         GPSConfig(relabel_policy_states="sampled")
 
 
-@pytest.mark.parametrize("c_step", ["lqr", "pi2"])
-def test_a_tracking_weight_relabels_with_the_controllers_feedback_fitted_anew(c_step):
+@pytest.mark.parametrize(("c_step", "relabel"), [("lqr", "mean"), ("pi2", "sampled")])
+def test_a_tracking_weight_relabels_with_the_controllers_feedback_fitted_anew(c_step, relabel):
     """``relabel_tracking_weight``: the network's states are labelled by the controllers with
     feedback gains from an LQR tracking their noise-free path (one more mean rollout per
     condition, counted), on the C-step's model or, under PI2, one fitted to the samples: the
     same actions on that path, other ones off it."""
-    relabelling = dict(relabel_policy_states="mean", relabel_tracking_weight=1e-3)
+    relabelling = dict(relabel_policy_states=relabel, relabel_tracking_weight=1e-3)
     trainer = trainer_for(worlds=GRID[:1], algo="mdgps", c_step=c_step, **relabelling)
     (state,) = trainer.states.values()
     drawn, experts = [], []
@@ -746,11 +746,13 @@ def test_a_tracking_weight_relabels_with_the_controllers_feedback_fitted_anew(c_
     assert [who for who, _ in drawn] == ["controllers", "policy", "controllers"] * 2
     (_, samples), (_, visited), (_, path) = drawn[-3:]
     M, N, T = samples.X.shape[:3]
-    assert path.X.shape[:3] == visited.X.shape[:3] == (M, 1, T)
-    assert trainer.samples["trajectories"] == 2 * M * (N + 2)
+    n_visited = N if relabel == "sampled" else 1
+    assert path.X.shape[:3] == (M, 1, T) and visited.X.shape[:3] == (M, n_visited, T)
+    assert trainer.samples["trajectories"] == 2 * M * (N + n_visited + 1)
     expert, controllers = experts[-1], state.controller.gains
+    torch.testing.assert_close(path.U, controllers.mean_actions(path.X))  # the noise-free path
     assert not torch.allclose(expert.K, controllers.K)
-    torch.testing.assert_close(expert.mean_actions(path.X), controllers.mean_actions(path.X))  # on the path
+    torch.testing.assert_close(expert.mean_actions(path.X), controllers.mean_actions(path.X))  # on it
     labels = expert.mean_actions(visited.X)
     assert not torch.allclose(labels, controllers.mean_actions(visited.X))  # off it
     relabelled = state.regression_data.storage[:][M * N * T :]

@@ -42,7 +42,7 @@ from dataclasses import dataclass
 import torch
 
 from modnet.gps.controller import LinearGaussianGains
-from modnet.gps.cost import QuadraticCost
+from modnet.gps.cost import QuadraticCost, tracking_cost
 from modnet.gps.dynamics import LinearGaussianDynamics
 from modnet.gps.errors import NumericalError, check_finite
 from modnet.gps.linalg import symmetrize
@@ -61,6 +61,7 @@ __all__ = [
     "lqr_backward",
     "lqr_forward",
     "solve_kl_constrained_lqr",
+    "tracking_feedback",
 ]
 
 log = logging.getLogger(__name__)
@@ -533,3 +534,37 @@ def adapt_step_mult(
     new_mult = ratio * torch.as_tensor(step_mult, dtype=_f64)
     return new_mult.clamp(config.min_mult, config.max_mult)
 
+
+def tracking_feedback(
+    dynamics: LinearGaussianDynamics,
+    X: torch.Tensor,
+    gains: LinearGaussianGains,
+    weight: float,
+    *,
+    world: str | None = None,
+    iteration: int | None = None,
+) -> torch.Tensor:
+    """Feedback gains ``K [M, T, dU, dX]`` for the controllers ``gains`` that track a path on
+    ``dynamics``: the LQR of :func:`~modnet.gps.cost.tracking_cost`, the states scaled by their
+    spread over the samples ``X [M, N, T, dX]``, the torques weighted ``weight`` over the
+    controllers' mean action variance (smaller: stiffer). Paired with
+    :meth:`~modnet.gps.controller.LinearGaussianGains.with_feedback`, the controllers keep their
+    path and pull back towards it harder.
+
+    Examples:
+        >>> from modnet.gps.controller import LinearGaussianGains
+        >>> from modnet.gps.dynamics import LinearGaussianDynamics
+        >>> M, T = 1, 20  # x' = x + 0.1 u
+        >>> F = torch.tensor([[1.0, 0.1]], dtype=torch.float64).expand(M, T, 1, 2)
+        >>> dyn = LinearGaussianDynamics(F, torch.zeros(M, T, 1).double(), torch.zeros(M, T, 1, 1).double(),
+        ...     torch.zeros(M, 1).double(), torch.eye(1).double()[None])
+        >>> gains = LinearGaussianGains.from_covariance(
+        ...     torch.zeros(M, T, 1, 1), torch.zeros(M, T, 1), torch.eye(1).expand(M, T, 1, 1))
+        >>> X = torch.randn(M, 8, T, 1)
+        >>> soft, stiff = (tracking_feedback(dyn, X, gains, w)[0, 0, 0, 0].item() for w in (1.0, 1e-4))
+        >>> stiff < soft < 0  # both pull back; the smaller weight harder
+        True
+    """
+    variance = float(gains.cov.diagonal(dim1=-2, dim2=-1).mean())
+    cost = tracking_cost(X, gains.action_dim, variance, weight)
+    return lqr_backward(cost, dynamics, world=world, iteration=iteration).gains.K

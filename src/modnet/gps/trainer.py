@@ -46,7 +46,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from modnet.bank import ModuleBank
 from modnet.gps.badmm import BADMMConfig, Multipliers, badmm_cost, badmm_targets, dual_step
 from modnet.gps.controller import LinearGaussianController, LinearGaussianGains
-from modnet.gps.cost import QuadraticCost, Ramp, expand_cost, time_weights, tracking_cost
+from modnet.gps.cost import QuadraticCost, Ramp, expand_cost, time_weights
 from modnet.gps.dynamics import (
     DynamicsPriorConfig,
     DynamicsPriorGMM,
@@ -64,8 +64,8 @@ from modnet.gps.lqr import (
     adapt_step_mult,
     kl_divergence,
     laplace_cost,
-    lqr_backward,
     lqr_forward,
+    tracking_feedback,
 )
 from modnet.gps.lqr import solve_kl_constrained_lqr as c_step
 from modnet.gps.pi2 import PI2Result, pi2_update, pilqr_update
@@ -213,9 +213,10 @@ class GPSConfig:
     relabel_policy_states: Literal["off", "sampled", "mean"] = "off"
     #: With ``relabel_policy_states``: None labels the network's states with the controllers as
     #: they are; a weight labels them with the controllers' feedback gains fitted anew, an LQR
-    #: tracking their noise-free path on this iteration's model (:func:`tracking_cost` with this
-    #: torque weight, relative to the controllers' action variance; smaller: stiffer), the same
-    #: mean actions on that path. PI2 keeps the feedback of the network's first linearisation,
+    #: tracking their noise-free path on this iteration's dynamics (:func:`tracking_feedback`:
+    #: the states scaled by their spread over the iteration's samples, the torques weighted this
+    #: much over the controllers' action variance; smaller: stiffer), the same mean actions on
+    #: that path. PI2 keeps the feedback of the network's first linearisation,
     #: which does not bring the arm back from where the network leads it (RESULTS, "a better
     #: expert for DAgger?")
     relabel_tracking_weight: float | None = None
@@ -356,7 +357,7 @@ class WorldState:
     policy_mean: torch.Tensor | None = None  # [M, N, T, dU]
     sampled_costs: torch.Tensor | None = None  # [M, N, T] the samples' time-weighted costs
     regression_data: ReplayBuffer | None = None  # the S-step's (observation, target) pairs
-    mean_sampler: WorldSampler | None = None  # one rollout per condition (relabel_policy_states="mean")
+    mean_sampler: WorldSampler | None = None  # one mean rollout per condition (relabelling)
     diagnostics: dict[str, float] = field(default_factory=dict)
 
 
@@ -553,7 +554,9 @@ class GPSTrainer:
             with torch.no_grad():
                 state.sampled_costs = world.state_cost(samples.X, samples.U, c.shaping) * weights
                 sampled = state.sampled_costs.sum(-1)
-        cost, dynamics = self.fit_model(state, samples) if c.fits_model else (None, None)
+        cost = dynamics = None
+        if c.fits_model:
+            cost, dynamics = self._expanded(state, samples), self._fitted(state, samples)
         state.previous = state.current
         state.current = Linearised(state.controller.gains, dynamics, cost)  # a snapshot
         state.samples = samples
@@ -562,27 +565,43 @@ class GPSTrainer:
             "distance": float(samples.distance.mean()),
         }
 
-    def fit_model(self, state: WorldState, samples: Samples) -> tuple[QuadraticCost, LinearGaussianDynamics]:
-        """The LQR's model of ``samples`` of ``state``'s world: the task's cost (shaped as
-        configured, weighted along time) expanded around them, and dynamics fitted to them,
-        after they join the dynamics prior."""
+    def iteration_cost(self, state: WorldState) -> QuadraticCost:
+        """The quadratic cost this iteration's C-step plans on; under PI2, which plans on none,
+        the task's cost expanded around the iteration's samples now."""
+        if state.current.cost is not None:
+            return state.current.cost
+        return self._expanded(state, state.samples)
+
+    def iteration_dynamics(self, state: WorldState) -> LinearGaussianDynamics:
+        """The dynamics this iteration's C-step plans on; under PI2, which plans on none,
+        dynamics fitted to the iteration's samples now, as the LQR's C-step fits them (the
+        samples join the dynamics prior: once an iteration)."""
+        if state.current.dynamics is not None:
+            return state.current.dynamics
+        return self._fitted(state, state.samples)
+
+    def _expanded(self, state: WorldState, samples: Samples) -> QuadraticCost:
+        """The task's cost (shaped as configured, weighted along time) expanded around ``samples``."""
         c, world = self.config, state.sampler.world
         with self._timed("cost"):
             weights = time_weights(state.sampler.horizon, c.cost_ramp, c.final_cost_multiplier)
             task_cost = lambda x, u: world.state_cost(x, u, c.shaping)  # noqa: E731
             cost = expand_cost(task_cost, samples.X, samples.U, weights)
             check_finite("cost expansion", cost.C, world=state.name, iteration=self.iteration)
+        return cost
+
+    def _fitted(self, state: WorldState, samples: Samples) -> LinearGaussianDynamics:
+        """Dynamics fitted to ``samples``, after they join the dynamics prior."""
         with self._timed("dynamics"):
             self._update_dynamics_prior(state, samples)
-            dynamics = fit_dynamics(
+            return fit_dynamics(
                 samples.X,
                 samples.U,
                 state.dynamics_prior,
-                ridge=c.dynamics_ridge,
+                ridge=self.config.dynamics_ridge,
                 world=state.name,
                 iteration=self.iteration,
             )
-        return cost, dynamics
 
     def _draw(self, state: WorldState, actor, sampler: WorldSampler | None = None) -> Samples:
         """One batch of trajectories from ``actor`` (N per condition, by the world's sampler
@@ -887,18 +906,21 @@ class GPSTrainer:
 
     def _tracking(self, state: WorldState) -> LinearGaussianGains:
         """The controllers with feedback gains fitted anew (``relabel_tracking_weight``): an LQR
-        tracking their noise-free path on this iteration's model (the C-step's, else fitted as
-        the LQR's C-step fits one), the states scaled by their spread over the samples."""
+        tracking their noise-free path on :meth:`iteration_dynamics`, the states scaled by their
+        spread over the iteration's samples."""
         gains = state.controller.gains
         with self._timed("sampling"):
             path = self._draw_mean(state, state.controller).X[:, 0]
-        dynamics = state.current.dynamics
-        if dynamics is None:  # PI2 fits no model
-            _, dynamics = self.fit_model(state, state.samples)
-        variance = float(gains.cov.diagonal(dim1=-2, dim2=-1).mean())
-        cost = tracking_cost(state.samples.X, gains.action_dim, variance, self.config.relabel_tracking_weight)
+        dynamics = self.iteration_dynamics(state)
         with self._timed("lqr"):
-            K = lqr_backward(cost, dynamics, world=state.name, iteration=self.iteration).gains.K
+            K = tracking_feedback(
+                dynamics,
+                state.samples.X,
+                gains,
+                self.config.relabel_tracking_weight,
+                world=state.name,
+                iteration=self.iteration,
+            )
         return gains.with_feedback(K, path)
 
     def _badmm_targets(self, state: WorldState) -> TensorDictBase:
