@@ -271,9 +271,9 @@ def departure(visited: torch.Tensor, path: torch.Tensor, X: torch.Tensor, steps,
         >>> out["network"], out["samples"], out["farthest"]
         ({'1': 0.6455, '2': 1.9365}, {'1': 0.9129, '2': 0.9129}, {'1': 'a', '2': 'b'})
     """
-    spread = state_spread(X)
-    away = ((visited - path) / spread).to(torch.float64)  # [M, T, dX]
-    tube = ((X - path.unsqueeze(1)) / spread).to(torch.float64)  # [M, N, T, dX]
+    spread = state_spread(X)  # float64, so the ratios are too
+    away = (visited - path) / spread  # [M, T, dX]
+    tube = (X - path.unsqueeze(1)) / spread  # [M, N, T, dX]
     rms = lambda d: d.square().mean(-1).sqrt()  # noqa: E731
     return {
         "network": {str(t): round(float(rms(away[:, t]).mean()), 4) for t in steps},
