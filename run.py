@@ -69,6 +69,7 @@ NEWER_OPTIONS = {
     "gps.train_modules": "all",
     "gps.relabel_policy_states": "off",
     "gps.relabel_tracking_weight": None,
+    "gps.pi2_policy_weight": 0.0,
 }
 
 

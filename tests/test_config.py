@@ -106,6 +106,12 @@ def test_overrides_reach_the_library_configs():
     )
     assert tracking.finetune_gps_config() == dataclasses.replace(by_mean, relabel_tracking_weight=1e-5)
     assert tracking.gps_config().relabel_tracking_weight is None
+    held = composed(
+        "universe=tiny", "algo=mdgps", "eval.finetune_c_step=pi2",
+        "eval.finetune_pi2_policy_weight=0.1"
+    )
+    assert held.finetune_gps_config().pi2_policy_weight == 0.1
+    assert held.gps_config().pi2_policy_weight == 0.0
 
 
 def test_mdgps_only_options_under_badmm_are_refused_before_any_work_naming_the_fix():
@@ -163,6 +169,11 @@ def test_literal_choices_and_values_no_type_rules_out_fail_with_the_key():
             "eval.finetune_relabel_tracking_weight",
             0.1,
             r"finetune_relabel_tracking_weight=0\.1: gps\.relabel_tracking_weight .* sampled or mean",
+        ),
+        (
+            "eval.finetune_pi2_policy_weight",
+            0.1,
+            r"finetune_pi2_policy_weight=0\.1: gps\.pi2_policy_weight .* positive only with gps\.c_step=pi2",
         ),
     ]:
         run = RunConfig(universe="tiny")

@@ -214,6 +214,10 @@ class EvalConfig:
             network's states with the controllers' feedback fitted anew by a tracking LQR of
             this torque weight (:class:`~modnet.gps.GPSConfig`'s ``relabel_tracking_weight``);
             None: ``gps.relabel_tracking_weight``. Not part of a checkpoint's identity.
+        finetune_pi2_policy_weight: every fine-tuning start's PI2 also weighs how far each sample
+            strayed from the composed policy (MDGPS's trust region; :class:`~modnet.gps.GPSConfig`'s
+            ``pi2_policy_weight``, with ``finetune_c_step=pi2``); None: ``gps.pi2_policy_weight``.
+            Not part of a checkpoint's identity.
     """
 
     conditions: str = "test"
@@ -240,6 +244,7 @@ class EvalConfig:
     finetune_init_variance: float | None = None
     finetune_pi2_covariance_damping: float | None = None
     finetune_relabel_tracking_weight: float | None = None
+    finetune_pi2_policy_weight: float | None = None
 
 
 #: the GPSConfig fields an ``eval.finetune_<field>`` sets for the fine-tuning starts alone
@@ -258,6 +263,7 @@ FINETUNE_GPS_OVERRIDES = (
     "init_variance",
     "pi2_covariance_damping",
     "relabel_tracking_weight",
+    "pi2_policy_weight",
 )
 
 

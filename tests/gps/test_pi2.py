@@ -16,6 +16,7 @@ from modnet.gps.pi2 import (
     model_costs,
     pi2_update,
     pilqr_update,
+    policy_log_ratio,
     sampling_noise,
     temperatures,
 )
@@ -120,6 +121,28 @@ def test_covariance_damping_must_be_positive():
     X, U = torch.zeros(1, 3, 4, 3), torch.zeros(1, 3, 4, 2)
     with pytest.raises(ValueError, match="covariance_damping must be positive"):
         pi2_update(gains, X, U, torch.zeros(1, 3, 4), covariance_damping=0.0)
+
+
+def test_the_policy_log_ratio_averages_to_the_kl_and_steers_pi2_towards_the_policy():
+    """Over samples the controllers drew, the mean log-likelihood ratio is ``KL(q || p)``, half
+    the squared gap of the means in units of the controllers' covariance; added to an even cost
+    it moves PI2's feed-forward from the controllers' towards the policy's actions."""
+    K = torch.randn(1, 3, 2, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    gains = gaussian(M=1, T=3, K=K, variance=0.5)
+    g = torch.Generator().manual_seed(1)
+    X = torch.randn(1, 20000, 3, 3, generator=g, dtype=torch.float64)
+    U = draw(gains, X, g)
+    gap = torch.tensor([0.3, -0.6], dtype=torch.float64)
+    policy = gains.mean_actions(X) + gap
+    ratio = policy_log_ratio(gains, X, U, policy)
+    kl = 0.5 * float(gap @ gap) / 0.5
+    assert torch.allclose(ratio.mean(1), torch.full((1, 3), kl, dtype=torch.float64), rtol=0.05)
+    X, U, ratio = X[:, :30], U[:, :30], ratio[:, :30]
+    even = torch.zeros(ratio.shape, dtype=torch.float64)
+    moved = pi2_update(gains, X, U, even + 5.0 * ratio).gains.k - gains.k
+    unmoved = pi2_update(gains, X, U, even).gains.k - gains.k
+    assert bool((moved @ gap > 0.5 * float(gap @ gap)).all()), moved  # most of the way to the policy
+    assert float((unmoved @ gap).abs().max()) < 0.5 * float(gap @ gap)  # the samples' own mean
 
 
 class LinearWorld:

@@ -13,6 +13,7 @@ import modnet.gps.trainer as trainer_module
 from modnet.bank import ModuleBank
 from modnet.evaluate import evaluating, training_env
 from modnet.gps.errors import NumericalError
+from modnet.gps.pi2 import policy_log_ratio
 from modnet.gps.sampling import WorldSampler
 from modnet.gps.trainer import GPSConfig, GPSTrainer
 from modnet.specs import TORQUE_LIMIT
@@ -606,6 +607,28 @@ def test_a_pi2_c_step_sampling_the_policy_reweights_around_its_linearisation():
     assert state.policy is not None and torch.equal(state.current.gains.K, state.policy.K)
     assert torch.equal(state.controller.gains.K, state.policy.K)
     assert not torch.allclose(state.controller.gains.k, state.policy.k)
+
+
+def test_a_policy_weight_holds_pi2s_controllers_near_the_network():
+    """``pi2_policy_weight``: reweighting the samples also by how far each strayed from the
+    composed policy gives controllers nearer the network's actions than PI2 alone, once the two
+    have parted (at first the network has just been fitted to the controllers, and the term is
+    nil); the KL it weighs is recorded, and only PI2 takes the option."""
+    gaps, kls = {}, {}
+    for weight in (0.0, 1.0):
+        trainer = trainer_for(GRID[:1], algo="mdgps", c_step="pi2", pi2_policy_weight=weight, sgd_steps=20)
+        for _ in range(3):
+            diagnostics = trainer.step()["three_link/reach_red"]
+        (state,) = trainer.states.values()
+        gap = state.controller.gains.mean_actions(state.samples.X) - state.policy_mean
+        gaps[weight] = float(gap.norm(dim=-1).mean())
+        kls[weight] = diagnostics.get("policy_kl")
+    ratio = policy_log_ratio(state.current.gains, state.samples.X, state.samples.U, state.policy_mean)
+    assert kls[0.0] is None and kls[1.0] == pytest.approx(float(ratio.sum(-1).mean()))
+    assert gaps[1.0] < 0.9 * gaps[0.0], gaps
+    for refused in (dict(pi2_policy_weight=-1.0, c_step="pi2"), dict(pi2_policy_weight=1.0, c_step="lqr")):
+        with pytest.raises(ValueError, match="pi2_policy_weight .* positive only with gps.c_step=pi2"):
+            GPSConfig(algo="mdgps", **refused)
 
 
 def test_a_pi2_trainer_without_a_model_resumes_exactly():

@@ -46,7 +46,15 @@ from modnet.gps.cost import QuadraticCost
 from modnet.gps.dynamics import LinearGaussianDynamics
 from modnet.gps.linalg import symmetrize
 
-__all__ = ["PI2Result", "model_costs", "pi2_update", "pilqr_update", "sampling_noise", "temperatures"]
+__all__ = [
+    "PI2Result",
+    "model_costs",
+    "pi2_update",
+    "pilqr_update",
+    "policy_log_ratio",
+    "sampling_noise",
+    "temperatures",
+]
 
 #: the lowest temperature searched (the GPS code's ``min_temperature``) and the highest
 MIN_TEMPERATURE = 1e-3
@@ -152,6 +160,40 @@ def sampling_noise(sampling: LinearGaussianGains, X: torch.Tensor, U: torch.Tens
     deviation = U.to(torch.float64) - sampling.mean_actions(X)
     chol = sampling.chol.unsqueeze(1).expand(*deviation.shape[:3], -1, -1)
     return torch.linalg.solve_triangular(chol, deviation.unsqueeze(-1), upper=False).squeeze(-1)
+
+
+def policy_log_ratio(
+    sampling: LinearGaussianGains, X: torch.Tensor, U: torch.Tensor, policy: torch.Tensor
+) -> torch.Tensor:
+    """Each sample's ``log q(u|x) - log p(u|x)`` per step, ``[M, N, T]``: ``q`` the controllers
+    ``sampling`` that drew actions ``U`` in states ``X``, ``p`` a Gaussian of the same covariance
+    centred on the policy's mean actions ``policy [M, N, T, dU]`` there. Its mean over samples
+    drawn by ``q`` estimates ``KL(q || p)``, half the squared gap between the two means in
+    units of the controllers' spread; one sample's value is that plus the gap's product with
+    the sample's own noise, so across the samples of a step it ranks them by how far their
+    noise pulled them from the policy (the noise's size alone cancels).
+
+    Added to PI2's cost with a weight (``GPSConfig.pi2_policy_weight``), it is MDGPS's trust
+    region around the policy in a C-step that has no model to put it in: the reweighting
+    prefers the samples that stayed near what the network does.
+
+    Examples:
+        >>> import torch
+        >>> sampling = LinearGaussianGains.from_covariance(
+        ...     torch.zeros(1, 1, 1, 1), torch.zeros(1, 1, 1), 4.0 * torch.eye(1).expand(1, 1, 1, 1))
+        >>> U = torch.tensor([-2.0, 0.0, 2.0]).reshape(1, 3, 1, 1)  # the controllers ask for 0
+        >>> policy_log_ratio(sampling, torch.zeros(1, 3, 1, 1), U, torch.ones(1, 3, 1, 1))[0, :, 0].tolist()
+        [0.625, 0.125, -0.375]
+    """
+    U = U.to(torch.float64)
+    from_policy = U - policy.to(torch.float64)
+    from_sampling = U - sampling.mean_actions(X)
+    precision = sampling.precision.unsqueeze(1)  # [M, 1, T, dU, dU]
+
+    def half_square(d: torch.Tensor) -> torch.Tensor:
+        return 0.5 * (d.unsqueeze(-2) @ precision @ d.unsqueeze(-1)).squeeze(-1).squeeze(-1)
+
+    return half_square(from_policy) - half_square(from_sampling)
 
 
 def model_costs(

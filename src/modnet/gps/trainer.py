@@ -68,7 +68,7 @@ from modnet.gps.lqr import (
     tracking_feedback,
 )
 from modnet.gps.lqr import solve_kl_constrained_lqr as c_step
-from modnet.gps.pi2 import PI2Result, pi2_update, pilqr_update
+from modnet.gps.pi2 import PI2Result, pi2_update, pilqr_update, policy_log_ratio
 from modnet.gps.sampling import POLICY_KEYS, STATE_KEYS, Samples, WorldSampler, state_of
 from modnet.modules import PixelEncoder
 from modnet.specs import TORQUE_LIMIT
@@ -226,6 +226,12 @@ class GPSConfig:
     #: PI2 and PILQR: the covariance is damped towards the old one by this power (the GPS code's
     #: ``covariance_damping``; larger keeps exploring longer)
     pi2_covariance_damping: float = 2.0
+    #: PI2: add this times each sample's log-likelihood ratio of the controllers over the policy
+    #: (:func:`~modnet.gps.pi2.policy_log_ratio`; its mean is their KL from a Gaussian of the
+    #: controllers' spread on the network's mean actions) to its cost: MDGPS's trust region
+    #: around the policy, which PI2 alone lacks (it stays near the controllers that sampled).
+    #: 0 is off, the GPS code's PIGPS (RESULTS, "PI2 held near the network")
+    pi2_policy_weight: float = 0.0
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -288,6 +294,12 @@ class GPSConfig:
             raise ValueError(
                 "gps.pi2_kl and gps.pi2_covariance_damping must be positive, "
                 f"got {self.pi2_kl} and {self.pi2_covariance_damping}"
+            )
+        if self.pi2_policy_weight < 0 or (self.pi2_policy_weight and self.c_step != "pi2"):
+            raise ValueError(
+                "gps.pi2_policy_weight weighs the policy's term in PI2's cost: it must be non-negative, "
+                f"and positive only with gps.c_step=pi2 (got {self.pi2_policy_weight} with "
+                f"c_step={self.c_step!r})"
             )
         if self.conditions not in CONDITION_SETS:
             raise ValueError(
@@ -505,7 +517,9 @@ class GPSTrainer:
           their temperature, means over steps; the step size stays 1); ``action_gap``:
           controller vs policy mean action at the samples; ``nu`` (BADMM): the policy-KL
           weight; ``regression_loss``; ``exploration``: the new controllers' spread, the root
-          of their mean action variance (PI2 shrinks it by ``pi2_covariance_damping``).
+          of their mean action variance (PI2 shrinks it by ``pi2_covariance_damping``);
+          ``policy_kl`` (with ``pi2_policy_weight``): the sampling controllers' KL from the
+          policy that PI2's cost weighs, summed over steps.
         """
         start = time.perf_counter()
         states = list(self.states.values())
@@ -793,19 +807,21 @@ class GPSTrainer:
 
     def _pi2_step(self, state: WorldState) -> None:
         """PI2 on this iteration's samples: around the distribution that drew them (the
-        controllers, or the policy's linearisation when it sampled); or, with PILQR, around
-        the LQR's new controllers, on the samples' cost less what the fitted model predicts
-        for their noise (the LQR's figures stay, the share of the cost the model misses is added)."""
+        controllers, or the policy's linearisation when it sampled), on their cost (plus the
+        policy's term, :meth:`_pi2_costs`); or, with PILQR, around the LQR's new controllers, on
+        the samples' cost less what the fitted model predicts for their noise (the LQR's
+        figures stay, the share of the cost the model misses is added)."""
         c = self.config
-        samples = (state.samples.X, state.samples.U, state.sampled_costs)
+        X, U = state.samples.X, state.samples.U
         options = dict(kl=c.pi2_kl, covariance_damping=c.pi2_covariance_damping)
         with self._timed("lqr"):
             try:
                 if c.c_step == "pilqr":
                     model = (state.current.gains, state.current.dynamics, state.current.cost)
+                    samples = (X, U, state.sampled_costs)
                     result = pilqr_update(state.controller.gains, *model, *samples, **options)
                 else:
-                    result = pi2_update(state.current.gains, *samples, **options)
+                    result = pi2_update(state.current.gains, X, U, self._pi2_costs(state), **options)
             except NumericalError as err:  # a covariance that is not positive definite
                 raise err.with_context(world=state.name, iteration=self.iteration) from err
         check_finite(f"{c.c_step} feed-forward", result.gains.k, world=state.name, iteration=self.iteration)
@@ -814,6 +830,17 @@ class GPSTrainer:
             state.diagnostics["residual_share"] = float(result.residual_share.mean())
         else:
             self._adopt(state, result)
+
+    def _pi2_costs(self, state: WorldState) -> torch.Tensor:
+        """The samples' costs for PI2; with ``pi2_policy_weight``, plus that times each sample's
+        log-likelihood ratio of the controllers that drew it over the policy, whose mean, the
+        KL, is recorded as ``policy_kl`` (a sum over steps, a mean over conditions)."""
+        weight = self.config.pi2_policy_weight
+        if not weight:
+            return state.sampled_costs
+        ratio = policy_log_ratio(state.current.gains, state.samples.X, state.samples.U, state.policy_mean)
+        state.diagnostics["policy_kl"] = float(ratio.sum(-1).mean())
+        return state.sampled_costs + weight * ratio
 
     def _mdgps_update(self, states: Sequence[WorldState], outputs_ready: bool = False) -> None:
         """Mirror-descent GPS: C-step in a KL trust region around the linearised policy
