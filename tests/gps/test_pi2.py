@@ -124,9 +124,9 @@ def test_covariance_damping_must_be_positive():
 
 
 def test_the_policy_log_ratio_averages_to_the_kl_and_steers_pi2_towards_the_policy():
-    """Over samples the controllers drew, the mean log-likelihood ratio is ``KL(q || p)``, half
-    the squared gap of the means in units of the controllers' covariance; added to an even cost
-    it moves PI2's feed-forward from the controllers' towards the policy's actions."""
+    """Over samples the controllers drew, the mean log-likelihood ratio is ``KL(q || p)`` of unit
+    variances, half the squared gap of the means, whatever the controllers' own spread; added to
+    an even cost it moves PI2's feed-forward from the controllers' towards the policy's actions."""
     K = torch.randn(1, 3, 2, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
     gains = gaussian(M=1, T=3, K=K, variance=0.5)
     g = torch.Generator().manual_seed(1)
@@ -135,7 +135,7 @@ def test_the_policy_log_ratio_averages_to_the_kl_and_steers_pi2_towards_the_poli
     gap = torch.tensor([0.3, -0.6], dtype=torch.float64)
     policy = gains.mean_actions(X) + gap
     ratio = policy_log_ratio(gains, X, U, policy)
-    kl = 0.5 * float(gap @ gap) / 0.5
+    kl = 0.5 * float(gap @ gap)
     assert torch.allclose(ratio.mean(1), torch.full((1, 3), kl, dtype=torch.float64), rtol=0.05)
     X, U, ratio = X[:, :30], U[:, :30], ratio[:, :30]
     even = torch.zeros(ratio.shape, dtype=torch.float64)

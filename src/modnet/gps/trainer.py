@@ -227,10 +227,11 @@ class GPSConfig:
     #: ``covariance_damping``; larger keeps exploring longer)
     pi2_covariance_damping: float = 2.0
     #: PI2: add this times each sample's log-likelihood ratio of the controllers over the policy
-    #: (:func:`~modnet.gps.pi2.policy_log_ratio`; its mean is their KL from a Gaussian of the
-    #: controllers' spread on the network's mean actions) to its cost: MDGPS's trust region
-    #: around the policy, which PI2 alone lacks (it stays near the controllers that sampled).
-    #: 0 is off, the GPS code's PIGPS (RESULTS, "PI2 held near the network")
+    #: (:func:`~modnet.gps.pi2.policy_log_ratio`, unit variances; its mean is half their squared
+    #: gap) to its cost: MDGPS's trust region around the policy, which PI2 alone lacks (it stays
+    #: near the controllers that sampled). Only its size against the task cost's matters (the
+    #: temperature meets the KL bound). 0 is off, the GPS code's PIGPS (RESULTS, "PI2 held near
+    #: the network")
     pi2_policy_weight: float = 0.0
     seed: int = 0
 
@@ -518,8 +519,9 @@ class GPSTrainer:
           controller vs policy mean action at the samples; ``nu`` (BADMM): the policy-KL
           weight; ``regression_loss``; ``exploration``: the new controllers' spread, the root
           of their mean action variance (PI2 shrinks it by ``pi2_covariance_damping``);
-          ``policy_kl`` (with ``pi2_policy_weight``): the sampling controllers' KL from the
-          policy that PI2's cost weighs, summed over steps.
+          ``policy_kl`` (with ``pi2_policy_weight``): the mean of the term PI2's cost weighs,
+          half the squared gap of the sampling controllers' actions from the policy's, summed
+          over steps.
         """
         start = time.perf_counter()
         states = list(self.states.values())
