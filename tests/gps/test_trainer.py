@@ -784,6 +784,30 @@ def test_a_tracking_weight_relabels_with_the_controllers_feedback_fitted_anew(c_
     torch.testing.assert_close(relabelled["target_action"], labels.reshape(-1, 3).to(torch.float32))
 
 
+def test_a_tracking_lqr_that_fails_under_pi2_describes_the_dynamics_it_fitted(monkeypatch):
+    """Under PI2 the tracking LQR plans on dynamics fitted for it alone; where they blow up (a
+    velocity entry growing 1e9x a step overflows the value function), the error names the world,
+    condition and iteration and describes those dynamics, as the LQR's C-step's errors do."""
+    fit = trainer_module.fit_dynamics
+
+    def unstable(*args, **kwargs):
+        dynamics = fit(*args, **kwargs)
+        F = dynamics.F.clone()
+        F[2, :-1, 3, 3] = 1e9
+        return dataclasses.replace(dynamics, F=F)
+
+    monkeypatch.setattr(trainer_module, "fit_dynamics", unstable)
+    relabelling = dict(relabel_policy_states="mean", relabel_tracking_weight=1e-3)
+    trainer = trainer_for(worlds=GRID[:1], algo="mdgps", c_step="pi2", **relabelling)
+    message = (
+        r"Q_uu is not positive definite.*; the fitted dynamics of this condition let a deviation grow by "
+        r"up to 1e\+09x a step \(step \d+, fed mostly by qd_joint0.* \[world=three_link/reach_red, "
+        r"condition=2, iteration=0\]"
+    )
+    with pytest.raises(NumericalError, match=message):
+        trainer.step()
+
+
 def test_a_tracking_weight_needs_relabelling_and_must_be_positive():
     with pytest.raises(ValueError, match="relabel_tracking_weight.*positive.*sampled or mean"):
         GPSConfig(algo="mdgps", relabel_tracking_weight=0.1)

@@ -748,14 +748,18 @@ class GPSTrainer:
         state.step_mult = adapt_step_mult(state.step_mult, predicted, actual, self.config.lqr())
 
     @staticmethod
-    def _with_dynamics_note(error: NumericalError, state: WorldState) -> NumericalError:
-        """``error`` with the failing condition's fitted dynamics described: how fast they let
-        a deviation grow and in which state entry. A C-step that cannot meet its KL bound or
-        keep ``Q_uu`` PD at any eta usually has dynamics that blow up (radius well above 1)."""
+    def _with_dynamics_note(
+        error: NumericalError, state: WorldState, dynamics: LinearGaussianDynamics | None = None
+    ) -> NumericalError:
+        """``error`` with the failing condition's fitted dynamics (``dynamics``, by default the
+        iteration's) described: how fast they let a deviation grow and in which state entry. An
+        LQR that cannot meet its KL bound or keep ``Q_uu`` PD at any eta usually has dynamics
+        that blow up (radius well above 1)."""
         m = error.condition
-        if m is None or state.current is None or not bool(state.current.dynamics.F[m].isfinite().all()):
+        if dynamics is None and state.current is not None:
+            dynamics = state.current.dynamics
+        if m is None or dynamics is None or not bool(dynamics.F[m].isfinite().all()):
             return error  # a NaN in the fit is its own message
-        dynamics = state.current.dynamics
         radius = dynamics.spectral_radius()[m, :-1]  # the last step has no successor
         t = int(radius.argmax())
         label = state.sampler.world.state_labels[dynamics.dominant_mode(m, t)]
@@ -942,14 +946,17 @@ class GPSTrainer:
             path = self._draw_mean(state, state.controller).X[:, 0]
         dynamics = self.iteration_dynamics(state)
         with self._timed("lqr"):
-            K = tracking_feedback(
-                dynamics,
-                state.samples.X,
-                gains,
-                self.config.relabel_tracking_weight,
-                world=state.name,
-                iteration=self.iteration,
-            )
+            try:
+                K = tracking_feedback(
+                    dynamics,
+                    state.samples.X,
+                    gains,
+                    self.config.relabel_tracking_weight,
+                    world=state.name,
+                    iteration=self.iteration,
+                )
+            except NumericalError as err:
+                raise self._with_dynamics_note(err, state, dynamics) from err
         return gains.with_feedback(K, path)
 
     def _badmm_targets(self, state: WorldState) -> TensorDictBase:
