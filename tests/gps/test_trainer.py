@@ -613,8 +613,9 @@ def test_a_policy_weight_holds_pi2s_controllers_near_the_network():
     """``pi2_policy_weight``: reweighting the samples also by how far each strayed from the
     composed policy gives controllers nearer the network's actions than PI2 alone, once the two
     have parted (at first the network has just been fitted to the controllers, and the term is
-    nil). The gap it weighs is recorded, and does not grow as PI2 narrows the exploration (in
-    the controllers' units it did, sixfold an iteration); only PI2 takes the option."""
+    nil). The term's mean is recorded under every PI2 step, and with the weight it does not
+    grow as PI2 narrows the exploration (in the controllers' units it did, sixfold an
+    iteration). Only PI2 sampling with the controllers takes the option."""
     gaps, kls = {}, {}
     for weight in (0.0, 10.0):
         trainer = trainer_for(GRID[:1], algo="mdgps", c_step="pi2", pi2_policy_weight=weight, sgd_steps=20)
@@ -622,13 +623,19 @@ def test_a_policy_weight_holds_pi2s_controllers_near_the_network():
         (state,) = trainer.states.values()
         gap = state.controller.gains.mean_actions(state.samples.X) - state.policy_mean
         gaps[weight] = float(gap.norm(dim=-1).mean())
-        kls[weight] = [d.get("policy_kl") for d in history]
-    ratio = policy_log_ratio(state.current.gains, state.samples.X, state.samples.U, state.policy_mean)
-    assert kls[0.0] == [None] * 3 and kls[10.0][-1] == pytest.approx(float(ratio.sum(-1).mean()))
+        kls[weight] = [d["policy_kl"] for d in history]
+    X, U = state.samples.X, state.samples.U
+    ratio = policy_log_ratio(state.current.gains, X, U, state.policy_mean, limit=TORQUE_LIMIT)
+    assert kls[10.0][-1] == pytest.approx(float(ratio.sum(-1).mean()))
     assert gaps[10.0] < 0.9 * gaps[0.0], gaps
     assert history[-1]["exploration"] < 0.5 * history[0]["exploration"]  # PI2 narrows it
     assert kls[10.0][2] < 1.5 * kls[10.0][1], kls
-    for refused in (dict(pi2_policy_weight=-1.0, c_step="pi2"), dict(pi2_policy_weight=1.0, c_step="lqr")):
+    for refused in (
+        dict(pi2_policy_weight=-1.0, c_step="pi2"),
+        dict(pi2_policy_weight=float("nan"), c_step="pi2"),
+        dict(pi2_policy_weight=1.0, c_step="lqr"),
+        dict(pi2_policy_weight=1.0, c_step="pi2", sample_on_policy=True),
+    ):
         with pytest.raises(ValueError, match="pi2_policy_weight .* positive only with gps.c_step=pi2"):
             GPSConfig(algo="mdgps", **refused)
 

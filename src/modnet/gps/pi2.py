@@ -163,36 +163,45 @@ def sampling_noise(sampling: LinearGaussianGains, X: torch.Tensor, U: torch.Tens
 
 
 def policy_log_ratio(
-    sampling: LinearGaussianGains, X: torch.Tensor, U: torch.Tensor, policy: torch.Tensor
+    sampling: LinearGaussianGains,
+    X: torch.Tensor,
+    U: torch.Tensor,
+    policy: torch.Tensor,
+    *,
+    limit: float | None = None,
 ) -> torch.Tensor:
     """Each sample's ``log q(u|x) - log p(u|x)`` per step, ``[M, N, T]``, for two Gaussians of
     unit variance (torques in N m): ``q`` on the mean actions of the controllers ``sampling``
     that drew the actions ``U`` in the states ``X``, ``p`` on the policy's mean actions there,
-    ``policy [M, N, T, dU]``. Its mean over the samples is ``KL(q || p)``, half the squared gap
-    between the two means; one sample's value is that plus the gap's product with the sample's
-    own noise, so across the samples of a step it ranks them by how far their noise took them
-    towards the policy or away (the noise's size alone cancels).
+    ``policy [M, N, T, dU]``. With ``limit``, the actions and both means are first clipped to
+    ``[-limit, limit]``, the torques the arm applies: a gap between two torques beyond the limit
+    is no gap in what the arm does. Its mean over the samples estimates ``KL(q || p)``, half the
+    squared gap between the two means; one sample's value is that plus the gap's product with
+    the sample's own noise, so across the samples of a step it ranks them by how far their
+    noise took them towards the policy or away (the noise's size alone cancels).
 
     Added to PI2's cost with a weight (``GPSConfig.pi2_policy_weight``), it is MDGPS's trust
     region around the policy in a C-step that has no model to put it in: the reweighting
     prefers the samples that stayed near what the network does. In fixed units its spread over
-    the samples, like the task cost's, shrinks with the controllers' exploration, so the two stay
-    in proportion; in units of the controllers' (or the policy's, fitted to theirs) spread it
-    grew as PI2 narrowed them, and the exploration collapsed (RESULTS, "PI2 held near the
-    network").
+    the samples, like the task cost's, shrinks with the controllers' exploration; in units of
+    the controllers' spread (or the policy's, fitted to theirs) it grew a thousandfold as PI2
+    narrowed them, and swamped the task cost (RESULTS, "PI2 held near the network").
 
     Examples:
         >>> import torch
         >>> sampling = LinearGaussianGains.from_covariance(
         ...     torch.zeros(1, 1, 1, 1), torch.zeros(1, 1, 1), torch.eye(1).expand(1, 1, 1, 1))
         >>> U = torch.tensor([-2.0, 0.0, 2.0]).reshape(1, 3, 1, 1)  # the controllers ask for 0
-        >>> policy_log_ratio(sampling, torch.zeros(1, 3, 1, 1), U, torch.ones(1, 3, 1, 1))[0, :, 0].tolist()
+        >>> X, policy = torch.zeros(1, 3, 1, 1), torch.ones(1, 3, 1, 1)
+        >>> policy_log_ratio(sampling, X, U, policy)[0, :, 0].tolist()
         [2.5, 0.5, -1.5]
+        >>> policy_log_ratio(sampling, X, U, 3.0 * policy, limit=1.0)[0, :, 0].tolist()  # 3 acts as 1
+        [1.5, 0.5, -0.5]
     """
-    U = U.to(torch.float64)
-    from_policy = U - policy.to(torch.float64)
-    from_sampling = U - sampling.mean_actions(X)
-    return 0.5 * (from_policy.pow(2) - from_sampling.pow(2)).sum(-1)
+    U, controllers, policy = U.to(torch.float64), sampling.mean_actions(X), policy.to(torch.float64)
+    if limit is not None:
+        U, controllers, policy = (a.clamp(-limit, limit) for a in (U, controllers, policy))
+    return 0.5 * ((U - policy).pow(2) - (U - controllers).pow(2)).sum(-1)
 
 
 def model_costs(

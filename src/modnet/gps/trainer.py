@@ -227,11 +227,11 @@ class GPSConfig:
     #: ``covariance_damping``; larger keeps exploring longer)
     pi2_covariance_damping: float = 2.0
     #: PI2: add this times each sample's log-likelihood ratio of the controllers over the policy
-    #: (:func:`~modnet.gps.pi2.policy_log_ratio`, unit variances; its mean is half their squared
-    #: gap) to its cost: MDGPS's trust region around the policy, which PI2 alone lacks (it stays
-    #: near the controllers that sampled). Only its size against the task cost's matters (the
-    #: temperature meets the KL bound). 0 is off, the GPS code's PIGPS (RESULTS, "PI2 held near
-    #: the network")
+    #: (:func:`~modnet.gps.pi2.policy_log_ratio`, unit variances, the torques clipped to the
+    #: limit; its mean is about half their squared gap) to its cost: MDGPS's trust region around
+    #: the policy, which PI2 alone lacks (it stays near the controllers that sampled). Only its
+    #: size against the task cost's matters (the temperature meets the KL bound). 0 is off, the
+    #: GPS code's PIGPS (RESULTS, "PI2 held near the network")
     pi2_policy_weight: float = 0.0
     seed: int = 0
 
@@ -296,11 +296,15 @@ class GPSConfig:
                 "gps.pi2_kl and gps.pi2_covariance_damping must be positive, "
                 f"got {self.pi2_kl} and {self.pi2_covariance_damping}"
             )
-        if self.pi2_policy_weight < 0 or (self.pi2_policy_weight and self.c_step != "pi2"):
+        if not self.pi2_policy_weight >= 0 or (
+            self.pi2_policy_weight and (self.c_step != "pi2" or self.sample_on_policy)
+        ):
             raise ValueError(
                 "gps.pi2_policy_weight weighs the policy's term in PI2's cost: it must be non-negative, "
-                f"and positive only with gps.c_step=pi2 (got {self.pi2_policy_weight} with "
-                f"c_step={self.c_step!r})"
+                "and positive only with gps.c_step=pi2 and the controllers sampling (not "
+                "sample_on_policy, where PI2 already reweights around the policy) (got "
+                f"{self.pi2_policy_weight} with c_step={self.c_step!r}, "
+                f"sample_on_policy={self.sample_on_policy})"
             )
         if self.conditions not in CONDITION_SETS:
             raise ValueError(
@@ -519,9 +523,9 @@ class GPSTrainer:
           controller vs policy mean action at the samples; ``nu`` (BADMM): the policy-KL
           weight; ``regression_loss``; ``exploration``: the new controllers' spread, the root
           of their mean action variance (PI2 shrinks it by ``pi2_covariance_damping``);
-          ``policy_kl`` (with ``pi2_policy_weight``): the mean of the term PI2's cost weighs,
-          half the squared gap of the sampling controllers' actions from the policy's, summed
-          over steps.
+          ``policy_kl`` (PI2): the mean of the term ``pi2_policy_weight`` adds to PI2's cost,
+          in expectation half the squared gap of the sampling controllers' actions from the
+          policy's (clipped to the torque limit), summed over steps.
         """
         start = time.perf_counter()
         states = list(self.states.values())
@@ -839,14 +843,14 @@ class GPSTrainer:
 
     def _pi2_costs(self, state: WorldState) -> torch.Tensor:
         """The samples' costs for PI2; with ``pi2_policy_weight``, plus that times each sample's
-        log-likelihood ratio of the controllers that drew it over the policy, whose mean, the
-        KL, is recorded as ``policy_kl`` (a sum over steps, a mean over conditions)."""
-        weight = self.config.pi2_policy_weight
-        if not weight:
-            return state.sampled_costs
-        ratio = policy_log_ratio(state.current.gains, state.samples.X, state.samples.U, state.policy_mean)
+        log-likelihood ratio of the controllers that drew it over the policy, in the torques the
+        arm applies. Its mean, ``policy_kl`` (a sum over steps, a mean over conditions), is
+        recorded under every PI2 step, with the weight or without."""
+        X, U = state.samples.X, state.samples.U
+        ratio = policy_log_ratio(state.current.gains, X, U, state.policy_mean, limit=TORQUE_LIMIT)
         state.diagnostics["policy_kl"] = float(ratio.sum(-1).mean())
-        return state.sampled_costs + weight * ratio
+        weight = self.config.pi2_policy_weight
+        return state.sampled_costs + weight * ratio if weight else state.sampled_costs
 
     def _mdgps_update(self, states: Sequence[WorldState], outputs_ready: bool = False) -> None:
         """Mirror-descent GPS: C-step in a KL trust region around the linearised policy
