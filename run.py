@@ -70,6 +70,7 @@ NEWER_OPTIONS = {
     "gps.relabel_policy_states": "off",
     "gps.relabel_tracking_weight": None,
     "gps.pi2_policy_weight": 0.0,
+    "gps.pi2_step_smoothing": 0.0,
 }
 
 

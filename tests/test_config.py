@@ -112,6 +112,11 @@ def test_overrides_reach_the_library_configs():
     )
     assert held.finetune_gps_config().pi2_policy_weight == 0.1
     assert held.gps_config().pi2_policy_weight == 0.0
+    smoothed = composed(
+        "universe=tiny", "algo=mdgps", "eval.finetune_c_step=pi2", "eval.finetune_pi2_step_smoothing=5"
+    )
+    assert smoothed.finetune_gps_config().pi2_step_smoothing == 5.0
+    assert smoothed.gps_config().pi2_step_smoothing == 0.0
 
 
 def test_mdgps_only_options_under_badmm_are_refused_before_any_work_naming_the_fix():
@@ -174,6 +179,11 @@ def test_literal_choices_and_values_no_type_rules_out_fail_with_the_key():
             "eval.finetune_pi2_policy_weight",
             0.1,
             r"finetune_pi2_policy_weight=0\.1: gps\.pi2_policy_weight .* positive only with gps\.c_step=pi2",
+        ),
+        (
+            "eval.finetune_pi2_step_smoothing",
+            5.0,
+            r"finetune_pi2_step_smoothing=5\.0: gps\.pi2_step_smoothing .* positive only with gps\.c_step",
         ),
     ]:
         run = RunConfig(universe="tiny")

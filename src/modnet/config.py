@@ -218,6 +218,10 @@ class EvalConfig:
             strayed from the composed policy (MDGPS's trust region; :class:`~modnet.gps.GPSConfig`'s
             ``pi2_policy_weight``, with ``finetune_c_step=pi2``); None: ``gps.pi2_policy_weight``.
             Not part of a checkpoint's identity.
+        finetune_pi2_step_smoothing: every fine-tuning start's PI2 filters its step of the
+            feed-forward along time with a Gaussian of this many steps (:class:`~modnet.gps.GPSConfig`'s
+            ``pi2_step_smoothing``, with ``finetune_c_step=pi2``); None: ``gps.pi2_step_smoothing``.
+            Not part of a checkpoint's identity.
     """
 
     conditions: str = "test"
@@ -245,6 +249,7 @@ class EvalConfig:
     finetune_pi2_covariance_damping: float | None = None
     finetune_relabel_tracking_weight: float | None = None
     finetune_pi2_policy_weight: float | None = None
+    finetune_pi2_step_smoothing: float | None = None
 
 
 #: the GPSConfig fields an ``eval.finetune_<field>`` sets for the fine-tuning starts alone
@@ -264,6 +269,7 @@ FINETUNE_GPS_OVERRIDES = (
     "pi2_covariance_damping",
     "relabel_tracking_weight",
     "pi2_policy_weight",
+    "pi2_step_smoothing",
 )
 
 

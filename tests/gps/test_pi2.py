@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from modnet.gps.controller import LinearGaussianGains
+from modnet.gps.controller import LinearGaussianGains, time_filtered
 from modnet.gps.cost import QuadraticCost
 from modnet.gps.dynamics import LinearGaussianDynamics
 from modnet.gps.errors import NumericalError
@@ -121,6 +121,34 @@ def test_covariance_damping_must_be_positive():
     X, U = torch.zeros(1, 3, 4, 3), torch.zeros(1, 3, 4, 2)
     with pytest.raises(ValueError, match="covariance_damping must be positive"):
         pi2_update(gains, X, U, torch.zeros(1, 3, 4), covariance_damping=0.0)
+
+
+def test_a_smoothed_step_is_the_step_filtered_along_time_and_drops_its_chance_part():
+    """A bandit at each of T steps whose best action varies slowly along time (``sin``), 10
+    draws per condition: each condition's raw step is mostly the chance mean of its few
+    samples' noise, which differs from one step and condition to the next (its spread over 64
+    conditions). ``step_smoothing`` filters the step along time from the old ``k`` (here
+    ``k + 1``, so the step is taken net of it), which keeps about a quarter of that spread and
+    almost none of its change from step to step. The covariance and temperatures are PI2's
+    own either way; a negative width is refused."""
+    M, N, T, dU = 64, 10, 100, 1
+    best = torch.sin(torch.linspace(0, math.pi, T, dtype=torch.float64)).reshape(1, 1, T, 1)
+    old = torch.ones(M, T, dU, dtype=torch.float64)
+    gains = gaussian(M=M, T=T, dU=dU, dX=1, k=old)
+    X = torch.zeros(M, N, T, 1, dtype=torch.float64)
+    U = draw(gains, X, torch.Generator().manual_seed(0))
+    costs = (U - 1.0 - best).pow(2).sum(-1)
+    raw, smoothed = (pi2_update(gains, X, U, costs, step_smoothing=s) for s in (0.0, 5.0))
+    assert torch.allclose(smoothed.gains.k, old + time_filtered(raw.gains.k - old, 5.0))
+    k = {"raw": raw.gains.k[..., 0], "smoothed": smoothed.gains.k[..., 0]}
+    chance = {name: ks - ks.mean(0) for name, ks in k.items()}
+    spread = {name: float(c.pow(2).mean().sqrt()) for name, c in chance.items()}
+    assert spread["smoothed"] < 0.35 * spread["raw"], spread
+    step_to_step = {name: float(c.diff(dim=1).abs().mean()) for name, c in chance.items()}
+    assert step_to_step["smoothed"] < 0.05 * step_to_step["raw"], step_to_step
+    assert torch.equal(raw.gains.cov, smoothed.gains.cov) and torch.equal(raw.eta, smoothed.eta)
+    with pytest.raises(ValueError, match="step_smoothing must be non-negative"):
+        pi2_update(gains, X, U, costs, step_smoothing=-1.0)
 
 
 def test_the_policy_log_ratio_averages_to_the_kl_and_steers_pi2_towards_the_policy():

@@ -640,6 +640,24 @@ def test_a_policy_weight_holds_pi2s_controllers_near_the_network():
             GPSConfig(algo="mdgps", **refused)
 
 
+def test_a_smoothed_pi2_step_changes_the_controllers_feed_forward_smoothly_along_time():
+    """``pi2_step_smoothing`` on a real MuJoCo world: the C-step's change of the feed-forward
+    (the controllers after it less those that sampled) moves far less from one time step to
+    the next than PI2's raw change, and only PI2 takes the option."""
+    roughness = {}
+    for smoothing in (0.0, 3.0):
+        options = dict(algo="mdgps", c_step="pi2", pi2_step_smoothing=smoothing, sgd_steps=20)
+        trainer = trainer_for(GRID[:1], **options)
+        trainer.step()
+        (state,) = trainer.states.values()
+        change = state.controller.gains.k - state.current.gains.k  # [M, T, dU]
+        roughness[smoothing] = float(change.diff(dim=1).norm(dim=-1).mean() / change.norm(dim=-1).mean())
+    assert roughness[3.0] < 0.3 * roughness[0.0], roughness
+    for refused in (dict(pi2_step_smoothing=-1.0, c_step="pi2"), dict(pi2_step_smoothing=2.0, c_step="lqr")):
+        with pytest.raises(ValueError, match="pi2_step_smoothing .* positive only with gps.c_step=pi2"):
+            GPSConfig(algo="mdgps", **refused)
+
+
 def test_a_pi2_trainer_without_a_model_resumes_exactly():
     options = dict(worlds=GRID[:1], algo="mdgps", c_step="pi2")
     original = trainer_for(**options)

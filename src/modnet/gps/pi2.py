@@ -41,7 +41,7 @@ from dataclasses import dataclass
 
 import torch
 
-from modnet.gps.controller import LinearGaussianGains
+from modnet.gps.controller import LinearGaussianGains, time_filtered
 from modnet.gps.cost import QuadraticCost
 from modnet.gps.dynamics import LinearGaussianDynamics
 from modnet.gps.linalg import symmetrize
@@ -125,6 +125,7 @@ def pi2_update(
     kl: float = 1.0,
     covariance_damping: float = 2.0,
     eta: torch.Tensor | None = None,
+    step_smoothing: float = 0.0,
 ) -> PI2Result:
     """The PI2 step from samples ``X [M, N, T, dX]``, ``U [M, N, T, dU]`` drawn by the
     linear-Gaussian distribution ``sampling``, with per-step costs ``costs [M, N, T]``.
@@ -133,9 +134,37 @@ def pi2_update(
     is ``sampling.cov`` times ``(tr(cov_old^-1 cov_weighted) / dU) ** (1 / damping)``, so it
     stays positive definite and keeps the shape of the old one. ``eta [M, T]``, when given,
     fixes the temperatures instead of meeting ``kl`` (PILQR's second pass).
+
+    ``step_smoothing`` (>= 0, in time steps) filters the step of the feed-forward, ``k_new -
+    sampling.k``, along time with a Gaussian of that standard deviation
+    (:func:`~modnet.gps.controller.time_filtered`). Each step's weighted mean of a few samples'
+    noise moves ``k`` by chance as much as by what the costs tell apart, and a network of the
+    state cannot follow such a change from one step to the next (RESULTS, "Can a network do
+    what PI2's controllers do?"); filtered, the step keeps what neighbouring steps agree on.
+    The covariance is PI2's own, the spread around the unfiltered mean. 0 leaves the step as
+    it is (the GPS code's).
+
+    Examples:
+        >>> M, N, T = 1, 2, 40
+        >>> sampling = LinearGaussianGains.from_covariance(
+        ...     torch.zeros(M, T, 1, 1), torch.zeros(M, T, 1), torch.eye(1).expand(M, T, 1, 1))
+        >>> sign = torch.tensor([1.0, -1.0]).repeat(T // 2)  # the better sample alternates
+        >>> U = torch.stack([sign, -sign]).reshape(M, N, T, 1)
+        >>> args = (sampling, torch.zeros(M, N, T, 1), U, -(U[..., 0] * sign))
+        >>> raw, smoothed = pi2_update(*args, kl=0.3), pi2_update(*args, kl=0.3, step_smoothing=2.0)
+        >>> round(float(raw.gains.k.abs().mean()), 2), round(float(smoothed.gains.k.abs().mean()), 2)
+        (0.73, 0.02)
+        >>> bool(torch.equal(raw.gains.cov, smoothed.gains.cov))
+        True
+        >>> args = (sampling, torch.zeros(M, N, T, 1), U * sign.reshape(1, 1, T, 1), -(U[..., 0] * sign))
+        >>> kept = pi2_update(*args, kl=0.3, step_smoothing=2.0)  # the same sample wins at every step
+        >>> bool(kept.gains.k.sub(pi2_update(*args, kl=0.3).gains.k).abs().max() < 1e-12)
+        True
     """
     if not covariance_damping > 0:
         raise ValueError(f"covariance_damping must be positive, got {covariance_damping}")
+    if not step_smoothing >= 0:
+        raise ValueError(f"step_smoothing must be non-negative (0: off), got {step_smoothing}")
     X, U, costs = X.to(torch.float64), U.to(torch.float64), costs.to(torch.float64)
     cost_to_go = _cost_to_go(costs)  # [M, N, T]
     if eta is None:
@@ -149,6 +178,9 @@ def pi2_update(
     relative = torch.linalg.solve(sampling.cov, weighted_cov).diagonal(dim1=-2, dim2=-1)
     ratio = (relative.sum(-1) / U.shape[-1]).clamp_min(0)
     cov = symmetrize(ratio.pow(1.0 / covariance_damping)[..., None, None] * sampling.cov)
+    if step_smoothing > 0:
+        old = sampling.k.to(torch.float64)
+        k = old + time_filtered(k - old, step_smoothing)
     gains = LinearGaussianGains.from_covariance(sampling.K, k, cov)
     expected = (w[..., 0] * cost_to_go[..., 0]).sum(-1)
     return PI2Result(gains=gains, eta=eta, kl=_kl_from_uniform(w), expected_cost=expected)

@@ -233,6 +233,11 @@ class GPSConfig:
     #: size against the task cost's matters (the temperature meets the KL bound). 0 is off, the
     #: GPS code's PIGPS (RESULTS, "PI2 held near the network")
     pi2_policy_weight: float = 0.0
+    #: PI2: filter each step of the feed-forward along time with a Gaussian of this many steps
+    #: (standard deviation): what neighbouring steps agree on stays, the chance mean of a few
+    #: samples' noise at one step goes (:func:`~modnet.gps.pi2.pi2_update`). 0 is off, the GPS
+    #: code's (RESULTS, "PI2's step smoothed along time")
+    pi2_step_smoothing: float = 0.0
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -305,6 +310,12 @@ class GPSConfig:
                 "sample_on_policy, where PI2 already reweights around the policy) (got "
                 f"{self.pi2_policy_weight} with c_step={self.c_step!r}, "
                 f"sample_on_policy={self.sample_on_policy})"
+            )
+        if not self.pi2_step_smoothing >= 0 or (self.pi2_step_smoothing and self.c_step != "pi2"):
+            raise ValueError(
+                "gps.pi2_step_smoothing filters PI2's step along time (in time steps): it must be "
+                f"non-negative, and positive only with gps.c_step=pi2 (got {self.pi2_step_smoothing} "
+                f"with c_step={self.c_step!r})"
             )
         if self.conditions not in CONDITION_SETS:
             raise ValueError(
@@ -831,7 +842,8 @@ class GPSTrainer:
                     samples = (X, U, state.sampled_costs)
                     result = pilqr_update(state.controller.gains, *model, *samples, **options)
                 else:
-                    result = pi2_update(state.current.gains, X, U, self._pi2_costs(state), **options)
+                    costs, smoothing = self._pi2_costs(state), c.pi2_step_smoothing
+                    result = pi2_update(state.current.gains, X, U, costs, step_smoothing=smoothing, **options)
             except NumericalError as err:  # a covariance that is not positive definite
                 raise err.with_context(world=state.name, iteration=self.iteration) from err
         check_finite(f"{c.c_step} feed-forward", result.gains.k, world=state.name, iteration=self.iteration)
