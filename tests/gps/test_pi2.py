@@ -127,20 +127,21 @@ def test_a_smoothed_step_is_the_step_filtered_along_time_and_drops_its_chance_pa
     """A bandit at each of T steps whose best action varies slowly along time (``sin``), 10
     draws per condition: each condition's raw step is mostly the chance mean of its few
     samples' noise, which differs from one step and condition to the next (its spread over 64
-    conditions). ``step_smoothing`` filters the step along time from the old ``k`` (here
-    ``k + 1``, so the step is taken net of it), which keeps about a quarter of that spread and
-    almost none of its change from step to step. The covariance and temperatures are PI2's
-    own either way; a negative width is refused."""
+    conditions). ``step_smoothing`` filters the step, ``k_new - k_old``, along time and adds it
+    to the old ``k``, which here alternates from step to step and so must not be filtered
+    itself; the smoothed step keeps about a quarter of the chance spread and almost none of its
+    change from step to step. The covariance and temperatures are PI2's own either way; a
+    negative width is refused."""
     M, N, T, dU = 64, 10, 100, 1
     best = torch.sin(torch.linspace(0, math.pi, T, dtype=torch.float64)).reshape(1, 1, T, 1)
-    old = torch.ones(M, T, dU, dtype=torch.float64)
+    old = (1.0 + 0.5 * (-1.0) ** torch.arange(T, dtype=torch.float64)).reshape(1, T, 1).expand(M, T, dU)
     gains = gaussian(M=M, T=T, dU=dU, dX=1, k=old)
     X = torch.zeros(M, N, T, 1, dtype=torch.float64)
     U = draw(gains, X, torch.Generator().manual_seed(0))
-    costs = (U - 1.0 - best).pow(2).sum(-1)
+    costs = (U - old.unsqueeze(1) - best).pow(2).sum(-1)
     raw, smoothed = (pi2_update(gains, X, U, costs, step_smoothing=s) for s in (0.0, 5.0))
     assert torch.allclose(smoothed.gains.k, old + time_filtered(raw.gains.k - old, 5.0))
-    k = {"raw": raw.gains.k[..., 0], "smoothed": smoothed.gains.k[..., 0]}
+    k = {"raw": (raw.gains.k - old)[..., 0], "smoothed": (smoothed.gains.k - old)[..., 0]}
     chance = {name: ks - ks.mean(0) for name, ks in k.items()}
     spread = {name: float(c.pow(2).mean().sqrt()) for name, c in chance.items()}
     assert spread["smoothed"] < 0.35 * spread["raw"], spread

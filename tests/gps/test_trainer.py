@@ -653,7 +653,13 @@ def test_a_smoothed_pi2_step_changes_the_controllers_feed_forward_smoothly_along
         change = state.controller.gains.k - state.current.gains.k  # [M, T, dU]
         roughness[smoothing] = float(change.diff(dim=1).norm(dim=-1).mean() / change.norm(dim=-1).mean())
     assert roughness[3.0] < 0.3 * roughness[0.0], roughness
-    for refused in (dict(pi2_step_smoothing=-1.0, c_step="pi2"), dict(pi2_step_smoothing=2.0, c_step="lqr")):
+    for refused in (
+        dict(pi2_step_smoothing=-1.0, c_step="pi2"),
+        dict(pi2_step_smoothing=float("nan"), c_step="pi2"),
+        dict(pi2_step_smoothing=float("inf"), c_step="pi2"),
+        dict(pi2_step_smoothing=2.0, c_step="lqr"),
+        dict(pi2_step_smoothing=2.0, c_step="pilqr"),
+    ):
         with pytest.raises(ValueError, match="pi2_step_smoothing .* positive only with gps.c_step=pi2"):
             GPSConfig(algo="mdgps", **refused)
 

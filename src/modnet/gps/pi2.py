@@ -137,12 +137,13 @@ def pi2_update(
 
     ``step_smoothing`` (>= 0, in time steps) filters the step of the feed-forward, ``k_new -
     sampling.k``, along time with a Gaussian of that standard deviation
-    (:func:`~modnet.gps.controller.time_filtered`). Each step's weighted mean of a few samples'
-    noise moves ``k`` by chance as much as by what the costs tell apart, and a network of the
-    state cannot follow such a change from one step to the next (RESULTS, "Can a network do
-    what PI2's controllers do?"); filtered, the step keeps what neighbouring steps agree on.
-    The covariance is PI2's own, the spread around the unfiltered mean. 0 leaves the step as
-    it is (the GPS code's).
+    (:func:`~modnet.gps.controller.time_filtered`; truncated at 4 standard deviations, so
+    widths below 1/8 of a step change nothing). Each step's weighted mean of a few samples'
+    noise moves ``k`` largely by chance, and the networks we fitted to such controllers did not
+    follow those changes from one step to the next (RESULTS, "Can a network do what PI2's
+    controllers do?"); filtered, the step keeps what neighbouring steps agree on. The
+    covariance is PI2's own, the spread around the unfiltered mean. 0 leaves the step as it
+    is (the GPS code's).
 
     Examples:
         >>> M, N, T = 1, 2, 40

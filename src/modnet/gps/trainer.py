@@ -311,10 +311,11 @@ class GPSConfig:
                 f"{self.pi2_policy_weight} with c_step={self.c_step!r}, "
                 f"sample_on_policy={self.sample_on_policy})"
             )
-        if not self.pi2_step_smoothing >= 0 or (self.pi2_step_smoothing and self.c_step != "pi2"):
+        smoothing = self.pi2_step_smoothing
+        if not 0 <= smoothing < float("inf") or (smoothing and self.c_step != "pi2"):
             raise ValueError(
                 "gps.pi2_step_smoothing filters PI2's step along time (in time steps): it must be "
-                f"non-negative, and positive only with gps.c_step=pi2 (got {self.pi2_step_smoothing} "
+                f"finite and non-negative, and positive only with gps.c_step=pi2 (got {smoothing} "
                 f"with c_step={self.c_step!r})"
             )
         if self.conditions not in CONDITION_SETS:
@@ -842,7 +843,8 @@ class GPSTrainer:
                     samples = (X, U, state.sampled_costs)
                     result = pilqr_update(state.controller.gains, *model, *samples, **options)
                 else:
-                    costs, smoothing = self._pi2_costs(state), c.pi2_step_smoothing
+                    costs = self._pi2_costs(state)
+                    smoothing = c.pi2_step_smoothing
                     result = pi2_update(state.current.gains, X, U, costs, step_smoothing=smoothing, **options)
             except NumericalError as err:  # a covariance that is not positive definite
                 raise err.with_context(world=state.name, iteration=self.iteration) from err
