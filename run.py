@@ -71,6 +71,7 @@ NEWER_OPTIONS = {
     "gps.relabel_tracking_weight": None,
     "gps.pi2_policy_weight": 0.0,
     "gps.pi2_step_smoothing": 0.0,
+    "gps.pi2_policy_feedback": False,
 }
 
 

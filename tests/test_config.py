@@ -117,6 +117,11 @@ def test_overrides_reach_the_library_configs():
     )
     assert smoothed.finetune_gps_config().pi2_step_smoothing == 5.0
     assert smoothed.gps_config().pi2_step_smoothing == 0.0
+    fed_back = composed(
+        "universe=tiny", "algo=mdgps", "eval.finetune_c_step=pi2", "eval.finetune_pi2_policy_feedback=true"
+    )
+    assert fed_back.finetune_gps_config().pi2_policy_feedback is True
+    assert fed_back.gps_config().pi2_policy_feedback is False
 
 
 def test_mdgps_only_options_under_badmm_are_refused_before_any_work_naming_the_fix():
@@ -184,6 +189,11 @@ def test_literal_choices_and_values_no_type_rules_out_fail_with_the_key():
             "eval.finetune_pi2_step_smoothing",
             5.0,
             r"finetune_pi2_step_smoothing=5\.0: gps\.pi2_step_smoothing .* positive only with gps\.c_step",
+        ),
+        (
+            "eval.finetune_pi2_policy_feedback",
+            True,
+            r"finetune_pi2_policy_feedback=True: gps\.pi2_policy_feedback .* needs gps\.c_step=pi2",
         ),
     ]:
         run = RunConfig(universe="tiny")
@@ -272,6 +282,11 @@ def test_validation_names_what_is_missing_and_the_valid_choices():
         composed("universe=color_reach", "gps.policy_linearization=jacobian"),
     ):  # before any training: fine-tuning comes after it
         with pytest.raises(ConfigError, match="policy_linearization=jacobian .* 'color_reach' reads images"):
+            validate(run)
+    for prefix in ("eval.finetune_", "gps."):
+        key = f"{prefix}pi2_policy_feedback"
+        run = composed("universe=color_reach", "algo=mdgps", f"{prefix}c_step=pi2", f"{key}=true")
+        with pytest.raises(ConfigError, match=f"{key}=true differentiates .* 'color_reach' reads images"):
             validate(run)
 
 

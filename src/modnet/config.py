@@ -222,6 +222,10 @@ class EvalConfig:
             feed-forward along time with a Gaussian of this many steps (:class:`~modnet.gps.GPSConfig`'s
             ``pi2_step_smoothing``, with ``finetune_c_step=pi2``); None: ``gps.pi2_step_smoothing``.
             Not part of a checkpoint's identity.
+        finetune_pi2_policy_feedback: every fine-tuning start's PI2 gives its controllers the
+            network's feedback after each step (:class:`~modnet.gps.GPSConfig`'s
+            ``pi2_policy_feedback``, with ``finetune_c_step=pi2``); None: ``gps.pi2_policy_feedback``.
+            Not part of a checkpoint's identity.
     """
 
     conditions: str = "test"
@@ -250,6 +254,7 @@ class EvalConfig:
     finetune_relabel_tracking_weight: float | None = None
     finetune_pi2_policy_weight: float | None = None
     finetune_pi2_step_smoothing: float | None = None
+    finetune_pi2_policy_feedback: bool | None = None
 
 
 #: the GPSConfig fields an ``eval.finetune_<field>`` sets for the fine-tuning starts alone
@@ -270,6 +275,7 @@ FINETUNE_GPS_OVERRIDES = (
     "relabel_tracking_weight",
     "pi2_policy_weight",
     "pi2_step_smoothing",
+    "pi2_policy_feedback",
 )
 
 
@@ -427,6 +433,12 @@ def validate(run: RunConfig) -> tuple[Universe, Split]:
             raise ConfigError(
                 f"{name}=jacobian differentiates a policy that reads the state, and universe "
                 f"{universe.name!r} reads images: use regression"
+            )
+        feedback = name.replace("policy_linearization", "pi2_policy_feedback")
+        if universe.pixels and config.pi2_policy_feedback:
+            raise ConfigError(
+                f"{feedback}=true differentiates a policy that reads the state, and universe "
+                f"{universe.name!r} reads images: leave it off"
             )
     return universe, split
 

@@ -14,7 +14,7 @@ from modnet.bank import ModuleBank
 from modnet.evaluate import evaluating, training_env
 from modnet.gps.errors import NumericalError
 from modnet.gps.pi2 import policy_log_ratio
-from modnet.gps.sampling import WorldSampler
+from modnet.gps.sampling import STATE_KEYS, WorldSampler
 from modnet.gps.trainer import GPSConfig, GPSTrainer
 from modnet.specs import TORQUE_LIMIT
 
@@ -662,6 +662,54 @@ def test_a_smoothed_pi2_step_changes_the_controllers_feed_forward_smoothly_along
     ):
         with pytest.raises(ValueError, match="pi2_step_smoothing .* positive only with gps.c_step=pi2"):
             GPSConfig(algo="mdgps", **refused)
+
+
+def test_pi2_with_the_policys_feedback_keeps_the_path_and_responds_off_it_as_the_network_does():
+    """``pi2_policy_feedback`` on a real MuJoCo world: the controllers it gives act as PI2's on
+    their noise-free path, and off it change their action as the network does (a finite
+    difference of the network, not its autograd Jacobian); the step records how far PI2's
+    feedback had come from the network's, and a trainer with the option changes the
+    controllers' gains to the network's after each PI2 step. Only PI2 sampling with the
+    controllers, on a policy that reads the state, takes the option."""
+    trainer = trainer_for(GRID[:1], algo="mdgps", c_step="pi2", sgd_steps=20)
+    trainer.step()
+    (state,) = trainer.states.values()
+    path = trainer._draw_mean(state, state.controller)
+    old, new = state.controller.gains, trainer._with_policy_feedback(state)
+    assert state.diagnostics["feedback_gap"] > 0
+    on_path = path.X  # [M, 1, T, dX]
+    assert torch.allclose(new.mean_actions(on_path), old.mean_actions(on_path), atol=1e-9)
+
+    delta = 1e-4 * torch.randn(on_path.shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    moved = path.obs.clone()
+    sizes = [moved.get(key).shape[-1] for key in STATE_KEYS]
+    for key, part in zip(STATE_KEYS, delta.split(sizes, dim=-1), strict=True):
+        moved.set(key, moved.get(key) + part.to(moved.get(key).dtype))
+    with trainer._acting(), torch.no_grad():
+        (before,), (after,) = (trainer._forward_samples([state], [obs]) for obs in (path.obs, moved))
+    network = (after["loc"] - before["loc"]).to(torch.float64)
+    inside = before["loc"].abs() < 0.9 * TORQUE_LIMIT  # the network's Jacobian rows are zeroed beyond it
+    assert inside.float().mean() > 0.5
+
+    def miss(gains):  # how far the gains' response to ``delta`` is from the network's
+        response = gains.mean_actions(on_path + delta) - gains.mean_actions(on_path)
+        return float((response - network)[inside].norm() / network[inside].norm())
+
+    assert miss(new) < 0.05 and miss(old) > 0.2, (miss(new), miss(old))  # PI2's feedback: otherwise
+
+    with_feedback = trainer_for(GRID[:1], algo="mdgps", c_step="pi2", sgd_steps=20, pi2_policy_feedback=True)
+    assert "feedback_gap" in with_feedback.step()["three_link/reach_red"]
+    for refused in (
+        dict(c_step="lqr"),
+        dict(c_step="pilqr"),
+        dict(c_step="pi2", sample_on_policy=True),
+    ):
+        with pytest.raises(ValueError, match="pi2_policy_feedback .* needs gps.c_step=pi2 and the control"):
+            GPSConfig(algo="mdgps", pi2_policy_feedback=True, **refused)
+    bank = ModuleBank.build(["three_link"], ["reach_red"], pixels=True, seed=0)
+    config = small_config(algo="mdgps", c_step="pi2", pi2_policy_feedback=True)
+    with pytest.raises(ValueError, match="pi2_policy_feedback differentiates a policy that reads the state"):
+        GPSTrainer(bank, GRID[:1], config, pixels=True)
 
 
 def test_a_pi2_trainer_without_a_model_resumes_exactly():

@@ -238,6 +238,13 @@ class GPSConfig:
     #: samples' noise at one step goes (:func:`~modnet.gps.pi2.pi2_update`). 0 is off, the GPS
     #: code's (RESULTS, "PI2's step smoothed along time")
     pi2_step_smoothing: float = 0.0
+    #: PI2: after each step, give the controllers the policy's own feedback, the network's
+    #: Jacobian along their noise-free path (policies that read the state only), and move the
+    #: feed-forward so that the path stays (:meth:`LinearGaussianGains.with_feedback`). The
+    #: controllers then differ from the network on their path only, and off it respond as it
+    #: does; PI2 alone keeps the feedback of the network's first linearisation, from which the
+    #: network drifts. Off by default, the GPS code's (RESULTS, "PI2 with the network's feedback")
+    pi2_policy_feedback: bool = False
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -317,6 +324,12 @@ class GPSConfig:
                 "gps.pi2_step_smoothing filters PI2's step along time (in time steps): it must be "
                 f"finite and non-negative, and positive only with gps.c_step=pi2 (got {smoothing} "
                 f"with c_step={self.c_step!r})"
+            )
+        if self.pi2_policy_feedback and (self.c_step != "pi2" or self.sample_on_policy):
+            raise ValueError(
+                "gps.pi2_policy_feedback gives PI2's controllers the policy's feedback: it needs "
+                f"gps.c_step=pi2 and the controllers sampling (got c_step={self.c_step!r}, "
+                f"sample_on_policy={self.sample_on_policy})"
             )
         if self.conditions not in CONDITION_SETS:
             raise ValueError(
@@ -417,6 +430,11 @@ class GPSTrainer:
             raise ValueError(
                 "gps.policy_linearization=jacobian needs a policy that reads the state; this one "
                 "reads images: use regression"
+            )
+        if pixels and config.pi2_policy_feedback:
+            raise ValueError(
+                "gps.pi2_policy_feedback differentiates a policy that reads the state; this one "
+                "reads images: leave it off"
             )
         check_train_modules(config.train_modules, bank.policy)
         if config.train_modules not in ("all", *bank.world_factors):  # before any world is built
@@ -708,17 +726,19 @@ class GPSTrainer:
                     )
 
     def _outputs_and_jacobians(
-        self, states: Sequence[WorldState]
+        self, states: Sequence[WorldState], obs: Sequence[TensorDictBase] | None = None
     ) -> tuple[list[TensorDictBase], list[torch.Tensor]]:
-        """The bank's outputs at every world's samples (as :meth:`_forward_samples`) and
-        ``d loc / d x [M, N, T, dU, dX]``, by autograd through the same pass (a state policy
-        reads ``x = [robot_state, task_state]`` itself), one backward pass per action dimension."""
+        """The bank's outputs at every world's samples (or at ``obs``, one per world; as
+        :meth:`_forward_samples`) and ``d loc / d x [M, N, T, dU, dX]``, by autograd through the
+        same pass (a state policy reads ``x = [robot_state, task_state]`` itself), one backward
+        pass per action dimension."""
         inputs = {}
-        for state in states:
-            obs = state.samples.obs.select(*STATE_KEYS).clone()
+        obs = [s.samples.obs for s in states] if obs is None else obs
+        for state, world_obs in zip(states, obs, strict=True):
+            leaves = world_obs.select(*STATE_KEYS).clone()
             for key in STATE_KEYS:
-                obs.set(key, obs.get(key).detach().requires_grad_(True))
-            inputs[state.name] = obs
+                leaves.set(key, leaves.get(key).detach().requires_grad_(True))
+            inputs[state.name] = leaves
         outputs, jacobians = [], []
         with torch.enable_grad():
             out = self.bank.forward_worlds(inputs)
@@ -854,6 +874,25 @@ class GPSTrainer:
             state.diagnostics["residual_share"] = float(result.residual_share.mean())
         else:
             self._adopt(state, result)
+            if c.pi2_policy_feedback:
+                state.controller.set_gains(self._with_policy_feedback(state))
+
+    def _with_policy_feedback(self, state: WorldState) -> LinearGaussianGains:
+        """The controllers with the policy's feedback (``pi2_policy_feedback``): ``K_t`` the
+        network's Jacobian at their noise-free path (zero where its torque is beyond the limit,
+        which the arm clips), the feed-forward moved so that the path stays. Records how far
+        the controllers' feedback had come from the network's (``feedback_gap``: the mean
+        Frobenius norm of the difference over conditions and steps)."""
+        gains = state.controller.gains
+        with self._timed("sampling"):
+            path = self._draw_mean(state, state.controller)
+        with self._timed("policy"), self._acting():
+            (out,), (jacobian,) = self._outputs_and_jacobians([state], [path.obs])
+        mean = out["loc"].to(torch.float64)[:, 0]
+        K = jacobian[:, 0] * (mean.abs() <= TORQUE_LIMIT).unsqueeze(-1)  # [M, T, dU, dX]
+        check_finite("policy feedback", K, world=state.name, iteration=self.iteration)
+        state.diagnostics["feedback_gap"] = float((gains.K - K).norm(dim=(-2, -1)).mean())
+        return gains.with_feedback(K, path.X[:, 0])
 
     def _pi2_costs(self, state: WorldState) -> torch.Tensor:
         """The samples' costs for PI2; with ``pi2_policy_weight``, plus that times each sample's
