@@ -72,6 +72,7 @@ NEWER_OPTIONS = {
     "gps.pi2_policy_weight": 0.0,
     "gps.pi2_step_smoothing": 0.0,
     "gps.pi2_policy_feedback": False,
+    "gps.feedback_weight": 0.0,
 }
 
 

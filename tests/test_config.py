@@ -122,6 +122,9 @@ def test_overrides_reach_the_library_configs():
     )
     assert fed_back.finetune_gps_config().pi2_policy_feedback is True
     assert fed_back.gps_config().pi2_policy_feedback is False
+    sobolev = composed("universe=tiny", "algo=mdgps", "eval.finetune_feedback_weight=10")
+    assert sobolev.finetune_gps_config().feedback_weight == 10.0
+    assert sobolev.gps_config().feedback_weight == 0.0
 
 
 def test_mdgps_only_options_under_badmm_are_refused_before_any_work_naming_the_fix():
@@ -194,6 +197,11 @@ def test_literal_choices_and_values_no_type_rules_out_fail_with_the_key():
             "eval.finetune_pi2_policy_feedback",
             True,
             r"finetune_pi2_policy_feedback=True: gps\.pi2_policy_feedback .* needs gps\.c_step=pi2",
+        ),
+        (
+            "eval.finetune_feedback_weight",
+            1.0,
+            r"finetune_feedback_weight=1\.0: gps\.feedback_weight .* positive only with algo=mdgps",
         ),
     ]:
         run = RunConfig(universe="tiny")
@@ -288,6 +296,9 @@ def test_validation_names_what_is_missing_and_the_valid_choices():
         run = composed("universe=color_reach", "algo=mdgps", f"{prefix}c_step=pi2", f"{key}=true")
         with pytest.raises(ConfigError, match=f"{key}=true differentiates .* 'color_reach' reads images"):
             validate(run)
+    run = composed("universe=color_reach", "algo=mdgps", "eval.finetune_feedback_weight=2")
+    with pytest.raises(ConfigError, match="finetune_feedback_weight=2.0 differentiates .* reads images"):
+        validate(run)
 
 
 def test_a_held_out_robot_or_task_that_no_training_world_covers_is_refused():

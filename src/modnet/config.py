@@ -226,6 +226,10 @@ class EvalConfig:
             network's feedback after each step (:class:`~modnet.gps.GPSConfig`'s
             ``pi2_policy_feedback``, with ``finetune_c_step=pi2``); None: ``gps.pi2_policy_feedback``.
             Not part of a checkpoint's identity.
+        finetune_feedback_weight: every fine-tuning start's S-step also regresses the network's
+            Jacobian onto the controllers' gains with this weight (:class:`~modnet.gps.GPSConfig`'s
+            ``feedback_weight``, MDGPS only); None: ``gps.feedback_weight``. Not part of a
+            checkpoint's identity.
     """
 
     conditions: str = "test"
@@ -255,6 +259,7 @@ class EvalConfig:
     finetune_pi2_policy_weight: float | None = None
     finetune_pi2_step_smoothing: float | None = None
     finetune_pi2_policy_feedback: bool | None = None
+    finetune_feedback_weight: float | None = None
 
 
 #: the GPSConfig fields an ``eval.finetune_<field>`` sets for the fine-tuning starts alone
@@ -276,6 +281,7 @@ FINETUNE_GPS_OVERRIDES = (
     "pi2_policy_weight",
     "pi2_step_smoothing",
     "pi2_policy_feedback",
+    "feedback_weight",
 )
 
 
@@ -434,12 +440,14 @@ def validate(run: RunConfig) -> tuple[Universe, Split]:
                 f"{name}=jacobian differentiates a policy that reads the state, and universe "
                 f"{universe.name!r} reads images: use regression"
             )
-        feedback = name.replace("policy_linearization", "pi2_policy_feedback")
-        if universe.pixels and config.pi2_policy_feedback:
-            raise ConfigError(
-                f"{feedback}=true differentiates a policy that reads the state, and universe "
-                f"{universe.name!r} reads images: leave it off"
-            )
+        for option in ("pi2_policy_feedback", "feedback_weight"):
+            value = getattr(config, option)
+            if universe.pixels and value:
+                raise ConfigError(
+                    f"{name.replace('policy_linearization', option)}={str(value).lower()} differentiates "
+                    f"a policy that reads the state, and universe {universe.name!r} reads images: "
+                    "leave it off"
+                )
     return universe, split
 
 

@@ -46,7 +46,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from modnet.bank import ModuleBank
 from modnet.gps.badmm import BADMMConfig, Multipliers, badmm_cost, badmm_targets, dual_step
 from modnet.gps.controller import LinearGaussianController, LinearGaussianGains
-from modnet.gps.cost import QuadraticCost, Ramp, expand_cost, time_weights
+from modnet.gps.cost import QuadraticCost, Ramp, expand_cost, state_spread, time_weights
 from modnet.gps.dynamics import (
     DynamicsPriorConfig,
     DynamicsPriorGMM,
@@ -245,6 +245,14 @@ class GPSConfig:
     #: does; PI2 alone keeps the feedback of the network's first linearisation, from which the
     #: network drifts. Off by default, the GPS code's (RESULTS, "PI2 with the network's feedback")
     pi2_policy_feedback: bool = False
+    #: MDGPS: the S-step also regresses the network's Jacobian in the state onto the
+    #: controllers' feedback gains at each sample, each state entry scaled by its spread over
+    #: the iteration's samples, with this weight against the actions' regression
+    #: (:class:`~modnet.gps.loss.PolicyRegressionLoss`; policies that read the state only).
+    #: The samples show the network a narrow tube of states, and how it responds off the tube
+    #: is left to chance; the controllers' gains say how they do. 0 is off, the GPS code's
+    #: (RESULTS, "the network's feedback")
+    feedback_weight: float = 0.0
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -330,6 +338,15 @@ class GPSConfig:
                 "gps.pi2_policy_feedback gives PI2's controllers the policy's feedback: it needs "
                 f"gps.c_step=pi2 and the controllers sampling (got c_step={self.c_step!r}, "
                 f"sample_on_policy={self.sample_on_policy})"
+            )
+        if not 0 <= self.feedback_weight < float("inf") or (
+            self.feedback_weight and (self.algo != "mdgps" or self.relabel_policy_states != "off")
+        ):
+            raise ValueError(
+                "gps.feedback_weight weighs the network's Jacobian against the controllers' gains in "
+                "the S-step: it must be finite and non-negative, and positive only with algo=mdgps "
+                f"and gps.relabel_policy_states=off (got {self.feedback_weight} with "
+                f"algo={self.algo!r}, relabel_policy_states={self.relabel_policy_states!r})"
             )
         if self.conditions not in CONDITION_SETS:
             raise ValueError(
@@ -431,11 +448,12 @@ class GPSTrainer:
                 "gps.policy_linearization=jacobian needs a policy that reads the state; this one "
                 "reads images: use regression"
             )
-        if pixels and config.pi2_policy_feedback:
-            raise ValueError(
-                "gps.pi2_policy_feedback differentiates a policy that reads the state; this one "
-                "reads images: leave it off"
-            )
+        for name in ("pi2_policy_feedback", "feedback_weight"):
+            if pixels and getattr(config, name):
+                raise ValueError(
+                    f"gps.{name} differentiates a policy that reads the state; this one "
+                    "reads images: leave it off"
+                )
         check_train_modules(config.train_modules, bank.policy)
         if config.train_modules not in ("all", *bank.world_factors):  # before any world is built
             valid = ", ".join(("all", *bank.world_factors))
@@ -452,7 +470,7 @@ class GPSTrainer:
         self.drawn = {"trajectories": 0, "env_steps": 0}
         self.timings: dict[str, float] = defaultdict(float)
         self.states = {state.name: state for state in map(lambda w: self._init_world(*w), worlds)}
-        self.loss = PolicyRegressionLoss(bank)
+        self.loss = PolicyRegressionLoss(bank, config.feedback_weight)
         if not config.train_convolutions:
             for encoder in (m for m in bank.modules() if isinstance(m, PixelEncoder)):
                 encoder.requires_grad_(False)
@@ -961,7 +979,8 @@ class GPSTrainer:
     def _controller_targets(self, state: WorldState) -> TensorDictBase:
         gains = state.controller.gains
         weights = torch.ones(state.samples.X.shape[:-1], dtype=torch.float64)
-        return self._targets(state, gains.mean_actions(state.samples.X), weights)
+        feedback = gains.K if self.config.feedback_weight else None
+        return self._targets(state, gains.mean_actions(state.samples.X), weights, feedback=feedback)
 
     def _relabelled_targets(self, state: WorldState) -> TensorDictBase:
         """The composed policy rolled out alone, its states labelled with the controllers' mean
@@ -1026,9 +1045,12 @@ class GPSTrainer:
         target: torch.Tensor,
         weights: torch.Tensor,
         obs: TensorDictBase | None = None,
+        feedback: torch.Tensor | None = None,
     ) -> TensorDictBase:
         """The S-step's training set of one world, flattened ``[M * N * T]``: ``target`` at the
-        observations ``obs`` (this iteration's samples' when None)."""
+        observations ``obs`` (this iteration's samples' when None); with ``feedback [M, T, dU,
+        dX]``, the controllers' gains at each sample in units of the state's spread over the
+        samples (``feedback_weight``)."""
         precision = state.controller.gains.precision[:, None].expand(*target.shape[:-1], -1, -1)
         weights = weights * weights.numel() / weights.sum()  # mean 1 ...
         median = weights[weights > 1e-2].median()
@@ -1040,6 +1062,11 @@ class GPSTrainer:
         data["target_action"] = target.to(torch.float32)
         data["precision"] = precision.to(torch.float32)
         data["weight"] = weights.to(torch.float32)
+        if feedback is not None:
+            scale = state_spread(state.samples.X)  # [dX]
+            scaled = feedback[:, None] * scale  # [M, 1, T, dU, dX]
+            data["feedback_target"] = scaled.expand(*target.shape, -1).to(torch.float32)
+            data["state_scale"] = scale.expand(*target.shape[:-1], -1).to(torch.float32)
         return data.reshape(-1)
 
     def _s_step(self, steps: int, targets: dict[str, TensorDictBase]) -> None:
@@ -1071,6 +1098,8 @@ class GPSTrainer:
             self._fit_policy_covariance(targets)
         for name in targets:
             self.states[name].diagnostics["regression_loss"] = float(losses["world_loss"][name])
+            if name in losses["feedback_loss"].keys():
+                self.states[name].diagnostics["feedback_loss"] = float(losses["feedback_loss"][name])
 
     @torch.no_grad()
     def _fit_policy_covariance(self, targets: dict[str, TensorDictBase]) -> None:
