@@ -42,6 +42,25 @@ from modnet.bank import ModuleBank
 from modnet.gps.sampling import STATE_KEYS
 
 
+def state_jacobian(loc: torch.Tensor, x: list[torch.Tensor], create_graph: bool = False) -> torch.Tensor:
+    """``d loc / d x [..., dU, dX]`` of actions ``loc [..., dU]`` in the state leaves ``x`` (the
+    parts of ``x = [robot_state, task_state]``, each of which ``loc`` was computed from), one
+    backward pass per action dimension; ``create_graph`` to differentiate it in turn.
+
+    Examples:
+        >>> robot = torch.tensor([[1.0, 2.0]], requires_grad=True)
+        >>> task = torch.tensor([[3.0]], requires_grad=True)
+        >>> loc = torch.stack([robot[:, 0] * task[:, 0], robot[:, 1] ** 2], -1)  # [1, 2]
+        >>> state_jacobian(loc, [robot, task])[0].tolist()
+        [[3.0, 0.0, 1.0], [0.0, 4.0, 0.0]]
+    """
+    rows = [
+        torch.cat(torch.autograd.grad(loc[..., j].sum(), x, retain_graph=True, create_graph=create_graph), -1)
+        for j in range(loc.shape[-1])
+    ]
+    return torch.stack(rows, dim=-2)
+
+
 class PolicyRegressionLoss(LossModule):
     """Sum over worlds of the precision-weighted regression loss of their composed policies.
 
@@ -99,12 +118,7 @@ class PolicyRegressionLoss(LossModule):
         return batch
 
     def _feedback_term(self, batch: TensorDictBase, loc: torch.Tensor) -> torch.Tensor:
-        x = [batch.get(key) for key in STATE_KEYS]
-        rows = [
-            torch.cat(torch.autograd.grad(loc[:, j].sum(), x, create_graph=True), dim=-1)
-            for j in range(loc.shape[-1])
-        ]
-        jacobian = torch.stack(rows, dim=-2)  # [B, dU, dX]
+        jacobian = state_jacobian(loc, [batch.get(key) for key in STATE_KEYS], create_graph=True)
         gap = jacobian * batch.get("state_scale").unsqueeze(-2) - batch.get("feedback_target")
         quad = (gap * (batch.get("precision") @ gap)).sum((-2, -1)) / gap.shape[-1]  # tr(G' P G) / dX
         return self.feedback_weight * (batch.get("weight") * quad).sum() / (2 * gap.shape[0])

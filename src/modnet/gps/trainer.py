@@ -57,7 +57,7 @@ from modnet.gps.dynamics import (
     policy_linearization_from_jacobian,
 )
 from modnet.gps.errors import NumericalError, check_finite
-from modnet.gps.loss import PolicyRegressionLoss
+from modnet.gps.loss import PolicyRegressionLoss, state_jacobian
 from modnet.gps.lqr import (
     LQRConfig,
     LQRResult,
@@ -243,7 +243,7 @@ class GPSConfig:
     #: feed-forward so that the path stays (:meth:`LinearGaussianGains.with_feedback`). The
     #: controllers then differ from the network on their path only, and off it respond as it
     #: does; PI2 alone keeps the feedback of the network's first linearisation, from which the
-    #: network drifts. Off by default, the GPS code's (RESULTS, "PI2 with the network's feedback")
+    #: network drifts. Off by default, the GPS code's (RESULTS, "the network's feedback")
     pi2_policy_feedback: bool = False
     #: MDGPS: the S-step also regresses the network's Jacobian in the state onto the
     #: controllers' feedback gains at each sample, each state entry scaled by its spread over
@@ -764,12 +764,8 @@ class GPSTrainer:
                 result = out[self.bank.world(state.name)]
                 loc = result["loc"]
                 x = [inputs[state.name].get(key) for key in STATE_KEYS]
-                rows = [
-                    torch.cat(torch.autograd.grad(loc[..., j].sum(), x, retain_graph=True), dim=-1)
-                    for j in range(loc.shape[-1])
-                ]
                 outputs.append(result.detach())
-                jacobians.append(torch.stack(rows, dim=-2).to(torch.float64))
+                jacobians.append(state_jacobian(loc, x).to(torch.float64))
         return outputs, jacobians
 
     @staticmethod
