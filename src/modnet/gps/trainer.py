@@ -722,8 +722,8 @@ class GPSTrainer:
             mean = result["loc"].to(torch.float64)
             check_finite("policy action", mean, world=state.name, iteration=self.iteration)
             if as_applied:
-                if jacobian is not None:  # a clipped torque does not move with the state
-                    jacobian = jacobian * (mean.abs() <= TORQUE_LIMIT).unsqueeze(-1)
+                if jacobian is not None:
+                    jacobian = _as_applied(jacobian, mean)
                 mean = mean.clamp(-TORQUE_LIMIT, TORQUE_LIMIT)
             state.policy_mean = mean
             self._record_action_gap(state)
@@ -902,8 +902,8 @@ class GPSTrainer:
             path = self._draw_mean(state, state.controller)
         with self._timed("policy"), self._acting():
             (out,), (jacobian,) = self._outputs_and_jacobians([state], [path.obs])
-        mean = out["loc"].to(torch.float64)[:, 0]
-        K = jacobian[:, 0] * (mean.abs() <= TORQUE_LIMIT).unsqueeze(-1)  # [M, T, dU, dX]
+        mean = out["loc"].to(torch.float64)
+        K = _as_applied(jacobian, mean)[:, 0]  # [M, T, dU, dX]
         check_finite("policy feedback", K, world=state.name, iteration=self.iteration)
         state.diagnostics["feedback_gap"] = float((gains.K - K).norm(dim=(-2, -1)).mean())
         return gains.with_feedback(K, path.X[:, 0])
@@ -1173,6 +1173,13 @@ class GPSTrainer:
         self.history = list(state["history"])
         for name, world_state in state["worlds"].items():
             _load_world_state(self.states[name], world_state)
+
+
+def _as_applied(jacobian: torch.Tensor, mean: torch.Tensor) -> torch.Tensor:
+    """The Jacobian ``[..., dU, dX]`` of the torques the arm applies: zero in the rows whose mean
+    action ``[..., dU]`` is beyond the torque limit, where a clipped torque does not move with
+    the state."""
+    return jacobian * (mean.abs() <= TORQUE_LIMIT).unsqueeze(-1)
 
 
 def _fields_dict(obj) -> dict | None:
