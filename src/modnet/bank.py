@@ -54,7 +54,7 @@ from torchrl.envs.utils import ExplorationType
 from torchrl.modules import IndependentNormal, ProbabilisticActor
 
 from modnet.files import write_atomically
-from modnet.modules import BankModule, ModuleArch, check_positive_ints, key_to_str
+from modnet.modules import Activation, BankModule, ModuleArch, check_positive_ints, key_to_str
 from modnet.specs import EE_DIM
 from modnet.worlds import robot_spec, task_spec
 
@@ -116,10 +116,10 @@ class BankConfig:
     """Architecture options of a robot/task bank (paper and GPS-code defaults).
 
     Args:
-        task_hidden: ReLU layers of a state task module before its bottleneck (3x80).
+        task_hidden: hidden layers of a state task module before its bottleneck (3x80).
         vision_hidden: fully connected layers of a vision task module after the spatial
             softmax, fed with the feature points and the task state (one of 80).
-        robot_hidden: ReLU layers of a robot module before the action mean (80, 80).
+        robot_hidden: hidden layers of a robot module before the action mean (80, 80).
         monolithic_hidden: layers of a monolithic per-world network; ``None`` uses
             ``task_hidden + robot_hidden`` (a network of the modular pair's size).
         interface_dim: width of the task -> robot bottleneck (12).
@@ -134,6 +134,9 @@ class BankConfig:
             finds all four blocks: :mod:`modnet.pretrain`).
         init_log_std: initial log-std of every action dimension (``log sqrt(0.1)``: GPS's
             initial policy variance 0.1).
+        activation: the nonlinearity of every fully connected layer and interface bottleneck
+            (``"relu"``, the paper's; or a smooth one: ``"tanh"``, ``"elu"``, ``"softplus"``,
+            ``"silu"``; :data:`modnet.modules.ACTIVATIONS`). Convolutions stay ReLU.
 
     Examples:
         >>> BankConfig(interface_dim=8, dropout=0.0).interface_dim
@@ -156,6 +159,7 @@ class BankConfig:
     conv_strides: tuple[int, ...] = (2, 1)
     softmax_temperature: float = 1.0
     init_log_std: float = -1.1512925464970228
+    activation: Activation = "relu"
 
     def __post_init__(self) -> None:
         for f in fields(self):  # a list (from JSON, YAML or a notebook) is the tuple it stands for
@@ -175,6 +179,7 @@ class BankConfig:
             "kernel_size": self.kernel_size,
             "conv_strides": self.conv_strides,
             "softmax_temperature": self.softmax_temperature,
+            "activation": self.activation,
         }
 
     def task_arch(self, task_state_dim: int, pixels: bool) -> ModuleArch:

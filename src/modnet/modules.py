@@ -62,6 +62,18 @@ __all__ = [
 
 MIN_STD = 1e-3  # floor of the normalisation scale (GPS: zero-variance state dimensions)
 HEADS = ("interface", "gaussian")
+#: The nonlinearity of a module's fully connected layers (its hidden layers and its interface
+#: bottleneck; convolutions stay ReLU). ReLU is the paper's (Levine et al.'s network); the
+#: others are smooth, so the network's Jacobian in its inputs changes with the weights and
+#: biases everywhere, not only where a unit switches on or off.
+ACTIVATIONS: dict[str, type[nn.Module]] = {
+    "relu": nn.ReLU,
+    "tanh": nn.Tanh,
+    "elu": nn.ELU,
+    "softplus": nn.Softplus,
+    "silu": nn.SiLU,
+}
+Activation = Literal["relu", "tanh", "elu", "softplus", "silu"]
 
 
 def interface_key(factor: str) -> tuple[str, str]:
@@ -121,8 +133,9 @@ class ModuleArch:
     Inputs, in this order: the interfaces of the upstream factors in ``reads`` (raw), the
     observation vectors in ``observations`` (z-scored by the module's own
     :class:`Normalizer`), and optionally the uint8 image at ``pixels`` (through a
-    :class:`PixelEncoder`).  They are concatenated and fed to ``hidden`` ReLU layers with
-    dropout ``dropout``; then the head: ``"interface"`` (a ReLU bottleneck of ``out_dim``
+    :class:`PixelEncoder`).  They are concatenated and fed to ``hidden`` fully connected
+    layers with the nonlinearity ``activation`` (one of :data:`ACTIVATIONS`; ReLU by default)
+    and dropout ``dropout``; then the head: ``"interface"`` (a bottleneck of ``out_dim``
     units with dropout ``interface_dropout``, written at ``("interface", factor)``) or
     ``"gaussian"`` (a linear action mean ``"loc"`` of ``out_dim`` and a learned
     state-independent ``"scale"`` starting at ``exp(init_log_std)``).
@@ -155,6 +168,7 @@ class ModuleArch:
     dropout: float = 0.0
     interface_dropout: float = 0.0
     init_log_std: float = 0.0
+    activation: Activation = "relu"
 
     def __post_init__(self) -> None:
         set_ = lambda name, value: object.__setattr__(self, name, value)
@@ -183,6 +197,8 @@ class ModuleArch:
             )
         if not isinstance(self.kernel_size, int) or self.kernel_size < 1 or self.kernel_size % 2 == 0:
             raise ValueError(f"kernel_size must be a positive odd integer, got {self.kernel_size!r}")
+        if self.activation not in ACTIVATIONS:
+            raise ValueError(f"activation must be one of {', '.join(ACTIVATIONS)}, got {self.activation!r}")
         set_("dropout", check_dropout("dropout", self.dropout))
         set_("interface_dropout", check_dropout("interface_dropout", self.interface_dropout))
         temperature = self.softmax_temperature
@@ -366,11 +382,13 @@ class PixelEncoder(nn.Module):
 
 
 class InterfaceHead(nn.Module):
-    """The bottleneck a module hands downstream: ``Linear -> ReLU -> Dropout``."""
+    """The bottleneck a module hands downstream: ``Linear -> activation -> Dropout``."""
 
-    def __init__(self, in_dim: int, width: int, dropout: float = 0.0) -> None:
+    def __init__(
+        self, in_dim: int, width: int, dropout: float = 0.0, activation: Activation = "relu"
+    ) -> None:
         super().__init__()
-        self.layers = nn.Sequential(nn.Linear(in_dim, width), nn.ReLU(), nn.Dropout(dropout))
+        self.layers = nn.Sequential(nn.Linear(in_dim, width), ACTIVATIONS[activation](), nn.Dropout(dropout))
 
     def forward(self, hidden: torch.Tensor) -> torch.Tensor:
         return self.layers(hidden)
@@ -396,11 +414,18 @@ class GaussianHead(nn.Module):
         return loc, self.log_std.exp().expand_as(loc)
 
 
-def relu_layers(in_dim: int, widths: Sequence[int], dropout: float = 0.0) -> nn.Sequential:
-    """``[Linear -> ReLU -> Dropout] * len(widths)`` (dropout omitted when 0)."""
+def hidden_layers(
+    in_dim: int, widths: Sequence[int], dropout: float = 0.0, activation: Activation = "relu"
+) -> nn.Sequential:
+    """``[Linear -> activation -> Dropout] * len(widths)`` (dropout omitted when 0).
+
+    Examples:
+        >>> hidden_layers(6, (80, 80), activation="tanh")[1]
+        Tanh()
+    """
     layers: list[nn.Module] = []
     for width in widths:
-        layers += [nn.Linear(in_dim, width), nn.ReLU()]
+        layers += [nn.Linear(in_dim, width), ACTIVATIONS[activation]()]
         if dropout:
             layers.append(nn.Dropout(dropout))
         in_dim = width
@@ -435,10 +460,10 @@ class ModuleNet(nn.Module):
                 arch.softmax_temperature,
             )
             in_dim += self.pixels.out_dim
-        self.trunk = relu_layers(in_dim, arch.hidden, arch.dropout)
+        self.trunk = hidden_layers(in_dim, arch.hidden, arch.dropout, arch.activation)
         last = arch.hidden[-1] if arch.hidden else in_dim
         if arch.head == "interface":
-            self.head: nn.Module = InterfaceHead(last, arch.out_dim, arch.interface_dropout)
+            self.head: nn.Module = InterfaceHead(last, arch.out_dim, arch.interface_dropout, arch.activation)
         else:
             self.head = GaussianHead(last, arch.out_dim, arch.init_log_std)
 
