@@ -117,6 +117,44 @@ def test_config_options_and_their_errors():
         ModuleBank.build(ROBOTS, TASKS, widht=3)
 
 
+def test_a_smooth_activation_runs_through_every_layer_saves_and_loads(tmp_path):
+    """``activation`` sets every fully connected layer's nonlinearity, interface included; the
+    network's Jacobian then changes with the state everywhere, where ReLU's is constant
+    between kinks; the manifest keeps it, and a manifest from before the option is ReLU."""
+    world = ("four_link", "reach_black")
+    bank = ModuleBank.build(["four_link"], ["reach_black"], activation="softplus", seed=0).eval()
+    nonlinear = (torch.nn.ReLU, torch.nn.Softplus)
+    for name, factor in (("four_link", "robot"), ("reach_black", "task")):
+        kinds = {type(m) for m in bank.get(factor, name).modules() if isinstance(m, nonlinear)}
+        assert kinds == {torch.nn.Softplus}
+    relu = ModuleBank.build(["four_link"], ["reach_black"], seed=0).eval()
+    state = observations(world, batch=(1,))
+
+    def jacobian(b: ModuleBank, shift: float) -> torch.Tensor:
+        loc = lambda x: b.compose(*world)(state.clone().set(("robot", "state"), x))["loc"]
+        return torch.autograd.functional.jacobian(loc, state["robot", "state"] + shift)
+
+    assert torch.equal(jacobian(relu, 0.0), jacobian(relu, 1e-6))  # no unit switches
+    assert not torch.equal(jacobian(bank, 0.0), jacobian(bank, 1e-6))
+    with pytest.raises(ValueError, match="activation must be one of relu, tanh, elu, softplus, silu"):
+        BankConfig(activation="gelu")
+
+    path = bank.save(tmp_path / "bank")
+    loaded = ModuleBank.load(path).eval()
+    assert loaded.config.activation == "softplus"
+    assert torch.equal(mean_action(bank.compose(*world), state), mean_action(loaded.compose(*world), state))
+    assert bank.fresh_copy(seed=1).config.activation == "softplus"  # scratch starts keep it
+    manifest = json.loads((path / "manifest.json").read_text())
+    del manifest["config"]["activation"]
+    for module in manifest["modules"]:
+        module.get("arch", {}).pop("activation", None)
+    (path / "manifest.json").write_text(json.dumps(manifest))
+    older = ModuleBank.load(path)
+    assert older.config.activation == "relu"
+    kinds = {type(m) for m in older.modules() if isinstance(m, nonlinear)}
+    assert kinds == {torch.nn.ReLU}
+
+
 def test_seed_makes_initialisation_reproducible_and_per_module():
     state = lambda bank: bank.state_dict()
     a, b = ModuleBank.build(ROBOTS, TASKS, seed=0), ModuleBank.build(ROBOTS, TASKS, seed=0)

@@ -156,6 +156,7 @@ def test_literal_choices_and_values_no_type_rules_out_fail_with_the_key():
         ("gps.iterations", 0, "gps.iterations must be at least 1"),
         ("threads", 0, "threads must be at least 1, got 0"),
         ("bank.dropout", 1.5, "dropout must be a probability"),
+        ("bank.activation", "gelu", r"bank\.activation must be one of 'relu', 'tanh', 'elu', 'softplus'"),
         ("gps.badmm.max_policy_weight", 1e-3, r"gps\.badmm: .*max_policy_weight, got 1e-06 / 0.005 / 0.001"),
         (
             "eval.finetune_samples_per_condition",
