@@ -5,6 +5,7 @@ import os
 import pickle
 import subprocess
 import sys
+import typing
 
 import pytest
 import torch
@@ -15,7 +16,7 @@ from torchrl.modules import ProbabilisticActor
 
 from modnet.bank import BankConfig, BankError, ModuleBank
 from modnet.envs import make_env
-from modnet.modules import BankModule, ModuleArch
+from modnet.modules import ACTIVATIONS, Activation, BankModule, ModuleArch
 from modnet.worlds import robot_spec, task_spec
 
 ROBOTS = ["three_link", "four_link"]
@@ -138,6 +139,7 @@ def test_a_smooth_activation_runs_through_every_layer_saves_and_loads(tmp_path):
     assert not torch.equal(jacobian(bank, 0.0), jacobian(bank, 1e-6))
     with pytest.raises(ValueError, match="activation must be one of relu, tanh, elu, softplus, silu"):
         BankConfig(activation="gelu")
+    assert typing.get_args(Activation) == tuple(ACTIVATIONS)  # run.py's choices are the library's
 
     path = bank.save(tmp_path / "bank")
     loaded = ModuleBank.load(path).eval()

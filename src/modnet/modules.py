@@ -3,9 +3,9 @@
 A modular policy for robot ``r`` doing task ``k`` is ``f_r(g_k(o_task), o_robot)`` (Devin et
 al., ICRA 2017).  Every module of a bank, whatever degree of variation ("factor") it belongs
 to, has the same shape: it reads the interfaces written by modules upstream of it plus its own
-observations, runs a small ReLU network, and writes either a new interface (task and object
-modules) or the mean and scale of a Gaussian over actions (robot modules, and the monolithic
-per-world baseline).
+observations, runs a small network (ReLU by default, :data:`ACTIVATIONS`), and writes either
+a new interface (task and object modules) or the mean and scale of a Gaussian over actions
+(robot modules, and the monolithic per-world baseline).
 
 * :class:`ModuleArch` is the frozen record of one module's architecture: what
   ``manifest.json`` stores and all that is needed to rebuild it.
