@@ -9,6 +9,7 @@
     python benchmarks/gps_single_world.py --task push --algo mdgps --sample-on-policy  # on-policy MDGPS
     python benchmarks/gps_single_world.py --task push --conditions 4 --algo mdgps --c-step pilqr  # or pi2
     python benchmarks/gps_single_world.py --clip-targets  # regress onto the torques the arm applies
+    python benchmarks/gps_single_world.py --task push --cost-ramp quadratic --final-cost-multiplier 1
 
 The distance is the task's (end-effector or object to goal) averaged over the last 5 steps
 of a deterministic rollout of the composed policy (not the local controllers) from each
@@ -31,12 +32,14 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from typing import get_args
 
 import torch
 
 from modnet.bank import ModuleBank
 from modnet.evaluate import evaluation_env, rollout
 from modnet.gps.badmm import BADMMConfig
+from modnet.gps.cost import Ramp
 from modnet.gps.sampling import state_of
 from modnet.gps.trainer import C_STEPS, GPSConfig, GPSTrainer
 from modnet.worlds import get_world, task_spec
@@ -165,6 +168,18 @@ def main() -> None:
         help="regress the network onto the torques the arm applies (clipped to its limits), "
         "not the controllers' (gps.clip_targets)",
     )
+    parser.add_argument(
+        "--cost-ramp",
+        default=GPSConfig.cost_ramp,
+        choices=list(get_args(Ramp)),
+        help="the cost's weight along time (gps.cost_ramp; the authors' push and drawer costs: quadratic)",
+    )
+    parser.add_argument(
+        "--final-cost-multiplier",
+        type=float,
+        default=GPSConfig.final_cost_multiplier,
+        help="the last step's cost weight times this (gps.final_cost_multiplier; the authors' push: 1)",
+    )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--trace", action="store_true", help="where the object goes, per condition")
     args = parser.parse_args()
@@ -208,6 +223,8 @@ def main() -> None:
             min_step_mult=args.min_step_mult,
             max_step_mult=args.max_step_mult,
             clip_targets=args.clip_targets,
+            cost_ramp=args.cost_ramp,
+            final_cost_multiplier=args.final_cost_multiplier,
             badmm=BADMMConfig(**pull),
             **sgd,
         )
@@ -246,6 +263,8 @@ def main() -> None:
                 "max_policy_weight": config.badmm.max_policy_weight,
                 "step_mult_bounds": [config.min_step_mult, config.max_step_mult],
                 "clip_targets": config.clip_targets,
+                "cost_ramp": config.cost_ramp,
+                "final_cost_multiplier": config.final_cost_multiplier,
                 "evaluated_on": args.evaluate_on,
                 "width": bank.config.task_hidden[0],
                 "sgd_steps": config.sgd_steps,

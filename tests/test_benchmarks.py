@@ -181,6 +181,22 @@ def test_gps_single_world_bounds_the_step_multiplier():
     assert "gps.min_step_mult must be positive and at most gps.max_step_mult" in refusal
 
 
+def test_gps_single_world_weighs_the_cost_along_time_as_asked():
+    """``--cost-ramp`` and ``--final-cost-multiplier`` reach the trainer and the JSON: the first
+    samples are the same, their time-weighted cost is not."""
+    options = "--task push --conditions 4 --samples 2 --iterations 1 --sgd-steps 9".split()
+    runs = []
+    for flags in ([], ["--cost-ramp", "quadratic", "--final-cost-multiplier", "1"]):
+        out = benchmark_lines("gps_single_world.py", *options, *flags)
+        first = next(line for line in out if line.startswith("iteration 0"))
+        runs.append((json.loads(out[-1]), float(first.split("sampled_cost=")[1].split()[0])))
+    (default, default_cost), (authors, authors_cost) = runs
+    assert (default["cost_ramp"], default["final_cost_multiplier"]) == ("constant", 5.0)
+    assert (authors["cost_ramp"], authors["final_cost_multiplier"]) == ("quadratic", 1.0)
+    assert authors["controllers_distance"] == default["controllers_distance"]
+    assert 0 < authors_cost < default_cost  # (t/T)^2 <= 1 at every step, and the last weighs 1, not 5
+
+
 def test_gps_single_world_clips_the_targets_and_reports_the_controllers_per_condition():
     """``--clip-targets`` reaches the S-step: the first samples are the same, the regression
     onto clipped torques is not; the controllers' final distance per training condition

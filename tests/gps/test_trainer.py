@@ -12,7 +12,7 @@ from tensordict import TensorDict
 import modnet.gps.trainer as trainer_module
 from modnet.bank import ModuleBank
 from modnet.evaluate import evaluating, training_env
-from modnet.gps.cost import state_spread
+from modnet.gps.cost import state_spread, time_weights
 from modnet.gps.errors import NumericalError
 from modnet.gps.pi2 import policy_log_ratio
 from modnet.gps.sampling import STATE_KEYS, WorldSampler
@@ -253,6 +253,29 @@ def test_the_step_multiplier_stays_within_its_bounds_and_bad_bounds_are_refused(
     for low, high in ((0.0, 1.0), (2.0, 1.0)):
         with pytest.raises(ValueError, match="min_step_mult must be positive and at most gps.max_step_mult"):
             GPSConfig(min_step_mult=low, max_step_mult=high)
+
+
+@pytest.mark.parametrize(("ramp", "final"), [("constant", 5.0), ("quadratic", 1.0), ("final_only", 1.0)])
+def test_the_cost_ramp_and_final_multiplier_weigh_the_samples_cost_along_time(ramp, final):
+    """``gps.cost_ramp`` and ``gps.final_cost_multiplier`` weigh each step's cost of the samples
+    (and so what the C-step plans on); the samples themselves are the same. A ramp the library
+    does not know, or a multiplier that is not positive, is refused."""
+    trainer = trainer_for(worlds=GRID[:1], cost_ramp=ramp, final_cost_multiplier=final, sgd_steps=9)
+    trainer.step()
+    state = trainer.states["three_link/reach_red"]
+    raw = state.sampler.world.state_cost(state.samples.X, state.samples.U, trainer.config.shaping)
+    weights = time_weights(20, ramp, final)
+    torch.testing.assert_close(state.sampled_costs, raw * weights)
+    first = {"constant": 1.0, "quadratic": 1 / 400, "final_only": 0.0}[ramp]  # 20 steps
+    assert (float(weights[0]), float(weights[-1])) == pytest.approx((first, final))
+    default = trainer_for(worlds=GRID[:1], sgd_steps=9)
+    default.step()
+    torch.testing.assert_close(default.states["three_link/reach_red"].samples.X, state.samples.X)
+    ramps = "constant, linear, quadratic, final_only"
+    with pytest.raises(ValueError, match=f"gps.cost_ramp must be one of {ramps}, got 'cubic'"):
+        GPSConfig(cost_ramp="cubic")
+    with pytest.raises(ValueError, match="gps.final_cost_multiplier must be positive, got 0.0"):
+        GPSConfig(final_cost_multiplier=0.0)
 
 
 @pytest.mark.parametrize("trained", ["robot", "task"])

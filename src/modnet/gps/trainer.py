@@ -36,7 +36,7 @@ import zlib
 from collections import defaultdict
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field, fields
-from typing import Literal
+from typing import Literal, get_args
 
 import torch
 from tensordict import TensorDict, TensorDictBase
@@ -263,6 +263,11 @@ class GPSConfig:
             raise ValueError(f"gps.init_variance must be positive, got {self.init_variance}")
         if not self.kl_step > 0:
             raise ValueError(f"gps.kl_step must be positive, got {self.kl_step}")
+        if self.cost_ramp not in get_args(Ramp):
+            ramps = ", ".join(get_args(Ramp))
+            raise ValueError(f"gps.cost_ramp must be one of {ramps}, got {self.cost_ramp!r}")
+        if not self.final_cost_multiplier > 0:
+            raise ValueError(f"gps.final_cost_multiplier must be positive, got {self.final_cost_multiplier}")
         if not 0 < self.min_step_mult <= self.max_step_mult:
             raise ValueError(
                 "gps.min_step_mult must be positive and at most gps.max_step_mult, "
