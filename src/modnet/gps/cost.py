@@ -22,7 +22,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, get_args
 
 import torch
 from torch.func import grad_and_value, jacfwd, vmap
@@ -71,7 +71,7 @@ def time_weights(
         weights = torch.zeros(horizon, dtype=dtype)
         weights[-1] = 1.0
     else:
-        raise ValueError(f"unknown ramp {ramp!r}; expected constant, linear, quadratic, final_only")
+        raise ValueError(f"unknown ramp {ramp!r}; expected {', '.join(get_args(Ramp))}")
     weights[-1] = weights[-1] * final_multiplier
     return weights
 
