@@ -491,10 +491,43 @@ def test_first_finetune_iteration_can_regress_onto_the_networks_own_linearisatio
     assert control["network_after"] != plain["network_after"]
 
 
+def test_interface_range_measures_the_held_out_interface_in_the_robot_modules_training_spreads():
+    figures = load_script(BENCHMARKS / "interface_range.py", "interface_range").interface_figures
+    seen = torch.randn(4000, 64, generator=torch.Generator().manual_seed(0))
+    same = figures(seen[:2000], seen, seen)
+    assert same["outside_heldout"] == same["outside_task_training"] == 0.0
+    assert same["rms_heldout"] == pytest.approx(1.0, abs=0.03)
+    assert same["rms_robot_training"] == pytest.approx(1.0, abs=0.03)
+    # five spreads off in every entry: sqrt(1 + 5^2) in root mean square, and most entries
+    # beyond the largest the robot module read (about 3.5 spreads up)
+    shifted = figures(seen[:2000] + 5 * seen.std(0), seen, seen[:10] - 10)
+    assert shifted["rms_heldout"] == pytest.approx(26**0.5, abs=0.1)
+    assert shifted["outside_heldout"] > 0.8 and shifted["outside_task_training"] == 1.0
+
+
+def test_interface_range_rolls_the_runs_held_out_world_out_as_its_zero_shot_table(tiny_run):
+    run_dir, _, _ = tiny_run
+    results = json.loads((run_dir / "results.json").read_text())
+    lines = benchmark_lines("interface_range.py", str(run_dir), "--num-conditions", "3")
+    out = json.loads(lines[-1])
+    figures = out["runs"][str(run_dir)]
+    assert lines[0].startswith(f"{run_dir}: relu, zero-shot")
+    assert (out["num_conditions"], figures["activation"]) == (3, "relu")
+    assert figures["holdout"] == results["holdout"]
+    # the same random positions and policy as the run's own table of 3 random positions
+    composed = results["random_conditions"]["methods"]["composed"]["mean"]
+    assert figures["zero_shot"] == pytest.approx(composed, abs=1e-4)
+    assert 0.5 < figures["rms_robot_training"] <= 1.0 + 1e-6  # standardised by itself
+    assert figures["rms_heldout"] > 0 and 0 <= figures["outside_heldout"] <= 1
+    done = run_script(BENCHMARKS / "interface_range.py", str(run_dir), "--num-conditions", "0")
+    assert done.returncode == 2 and "--num-conditions must be at least 1, got 0" in done.stderr
+
+
 @pytest.mark.parametrize(
     "script, missing",
     [
         ("score_bank.py", "no results.json, bank/manifest.json"),
+        ("interface_range.py", "no results.json, bank/manifest.json"),
         ("object_contact.py", "no results.json, bank/manifest.json, .hydra/config.yaml"),
         ("first_finetune_iteration.py", "no results.json, bank/manifest.json, .hydra/config.yaml"),
         ("probe_vision.py", "no results.json, bank/manifest.json"),
