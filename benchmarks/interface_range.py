@@ -103,6 +103,9 @@ def main() -> None:
     if args.num_conditions < 1:
         parser.error(f"--num-conditions must be at least 1, got {args.num_conditions}")
     results = {run_dir: finished_run(parser, run_dir) for run_dir in args.run_dirs}
+    for run_dir, result in results.items():
+        if result.get("policy", "modular") != "modular":
+            parser.error(f"{run_dir} trained a {result['policy']} bank: only modular banks have an interface")
     torch.set_num_threads(1)
     runs = {}
     for run_dir, result in results.items():

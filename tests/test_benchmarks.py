@@ -523,6 +523,15 @@ def test_interface_range_rolls_the_runs_held_out_world_out_as_its_zero_shot_tabl
     assert done.returncode == 2 and "--num-conditions must be at least 1, got 0" in done.stderr
 
 
+def test_interface_range_refuses_a_monolithic_bank_in_one_line(tmp_path):
+    (tmp_path / "bank").mkdir()
+    (tmp_path / "bank" / "manifest.json").write_text("{}")
+    (tmp_path / "results.json").write_text(json.dumps({"policy": "monolithic"}))
+    done = run_script(BENCHMARKS / "interface_range.py", str(tmp_path))
+    message = f"{tmp_path} trained a monolithic bank: only modular banks have an interface"
+    assert done.returncode == 2 and message in done.stderr, done.stderr
+
+
 @pytest.mark.parametrize(
     "script, missing",
     [
