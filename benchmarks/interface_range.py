@@ -30,7 +30,7 @@ import torch
 from _run_dir import finished_run
 
 from modnet.bank import ModuleBank
-from modnet.evaluate import evaluating, evaluation_env, rollout
+from modnet.evaluate import evaluation_env, rollout
 from modnet.modules import interface_key
 from modnet.universes import get_universe, parse_world
 
@@ -82,10 +82,9 @@ def run_figures(run_dir: Path, results: dict, num_conditions: int) -> dict:
         td, _ = rollout(bank, *world, env)
         return td[key], env.final_distance(td)
 
-    with evaluating(bank):
-        heldout, distance = interface((robot, task))
-        robot_training = torch.cat([interface(w)[0] for w in sorted(bank.trained_on("robot", robot))])
-        task_training = torch.cat([interface(w)[0] for w in sorted(bank.trained_on("task", task))])
+    heldout, distance = interface((robot, task))  # rollout: mean actions, no dropout, no autograd
+    robot_training = torch.cat([interface(w)[0] for w in sorted(bank.trained_on("robot", robot))])
+    task_training = torch.cat([interface(w)[0] for w in sorted(bank.trained_on("task", task))])
     figures = interface_figures(heldout, robot_training, task_training)
     return {
         "holdout": results["holdout"],
