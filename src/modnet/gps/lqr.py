@@ -37,7 +37,7 @@ Examples:
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 
@@ -56,6 +56,7 @@ __all__ = [
     "augmented_cost",
     "expected_cost",
     "gaussian_cost_terms",
+    "held_at_centre",
     "kl_divergence",
     "laplace_cost",
     "lqr_backward",
@@ -509,6 +510,59 @@ def solve_kl_constrained_lqr(
         converged=converged,
         at_cap=at_cap,
         iterations=iterations,
+    )
+
+
+def held_at_centre(
+    result: LQRResult,
+    centre: LinearGaussianGains,
+    dynamics: LinearGaussianDynamics,
+    cost: QuadraticCost,
+    *,
+    eta: torch.Tensor,
+) -> LQRResult:
+    """``result`` with every condition ``at_cap`` keeping ``centre``, the controllers its KL is
+    measured from: the limit of the C-step as eta grows, and the one step the bound always
+    allows (KL 0). Where the fitted dynamics blow up (a deviation growing 1.4x a step for 90
+    steps), the cost they predict outgrows any eta and no step the search tries meets the
+    bound; the GPS code takes the capped step anyway, this takes none. Those conditions' eta
+    goes back to ``eta [M]`` (the warm start the search began from); marginals, KL and
+    expected cost are those of the controllers kept.
+
+    Examples:
+        >>> import torch
+        >>> from modnet.gps.cost import QuadraticCost
+        >>> from modnet.gps.dynamics import LinearGaussianDynamics
+        >>> z = lambda *shape: torch.zeros(*shape, dtype=torch.float64)
+        >>> eye = torch.eye(2, dtype=torch.float64)
+        >>> dyn = LinearGaussianDynamics(F=z(2, 3, 1, 2) + 1, f=z(2, 3, 1), D=z(2, 3, 1, 1),
+        ...     x0mu=z(2, 1) + 1, x0sigma=eye[:1, :1].expand(2, 1, 1))
+        >>> cost = QuadraticCost(eye.expand(2, 3, 2, 2), z(2, 3, 2), z(2, 3))
+        >>> unit = eye[:1, :1].expand(2, 3, 1, 1)
+        >>> centre = LinearGaussianGains.from_covariance(z(2, 3, 1, 1), z(2, 3, 1), unit)
+        >>> result = solve_kl_constrained_lqr(cost, dyn, centre, config=LQRConfig(kl_step=0.1))
+        >>> result.at_cap = torch.tensor([False, True])  # as if condition 1's search had failed
+        >>> held = held_at_centre(result, centre, dyn, cost, eta=z(2) + 1)
+        >>> torch.equal(held.gains.K[1], centre.K[1]), torch.equal(held.gains.K[0], result.gains.K[0])
+        (True, True)
+        >>> held.kl[1].item(), held.eta[1].item(), bool(held.kl[0].sub(result.kl[0]).abs() < 1e-12)
+        (0.0, 1.0, True)
+    """
+    cap = result.at_cap
+
+    def pick(name: str) -> torch.Tensor:
+        new, kept = getattr(result.gains, name), getattr(centre, name).to(_f64)
+        return torch.where(cap.reshape(-1, *(1,) * (new.dim() - 1)), kept, new)
+
+    gains = LinearGaussianGains(**{name: pick(name) for name in ("K", "k", "cov", "chol", "precision")})
+    marginals = lqr_forward(gains, dynamics)
+    return replace(
+        result,
+        gains=gains,
+        eta=torch.where(cap, eta.to(_f64), result.eta),
+        kl=kl_divergence(gains, centre, marginals),
+        expected_cost=expected_cost(marginals, cost),
+        marginals=marginals,
     )
 
 

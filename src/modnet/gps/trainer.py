@@ -31,6 +31,7 @@ Examples:
 from __future__ import annotations
 
 import contextlib
+import logging
 import time
 import zlib
 from collections import defaultdict
@@ -62,6 +63,7 @@ from modnet.gps.lqr import (
     LQRConfig,
     LQRResult,
     adapt_step_mult,
+    held_at_centre,
     kl_divergence,
     laplace_cost,
     lqr_forward,
@@ -73,6 +75,8 @@ from modnet.gps.sampling import POLICY_KEYS, STATE_KEYS, Samples, WorldSampler, 
 from modnet.modules import PixelEncoder
 from modnet.specs import TORQUE_LIMIT
 from modnet.worlds import CONDITION_SETS, NUM_FIXED_CONDITIONS
+
+log = logging.getLogger(__name__)
 
 #: where an iteration's time goes (``GPSTrainer.timings``): sampling the worlds, expanding the
 #: cost, fitting dynamics and policy linearisations, the C-step ("lqr", or PI2 with
@@ -138,6 +142,9 @@ class GPSConfig:
     #: "What did not match", measures its floor on three_link/reach)
     min_step_mult: float = 0.5
     max_step_mult: float = 3.0
+    #: the C-step's cap on eta; a condition whose KL bound no eta below it meets keeps the
+    #: controllers its KL is measured from for the iteration, with a warning that names it
+    #: (``held_conditions`` in the diagnostics; :func:`~modnet.gps.lqr.held_at_centre`)
     max_eta: float = 1e16
     sgd_steps: int = 1000
     initial_sgd_steps: int = 1000
@@ -842,16 +849,20 @@ class GPSTrainer:
                 )
             except NumericalError as err:
                 raise self._with_dynamics_note(err, state) from err
-        if bool(result.at_cap.any()):
-            m = int(result.at_cap.nonzero()[0, 0])
-            error = NumericalError(
-                f"eta reached its cap {config.max_eta:g} without meeting the KL target "
-                f"(last KL {float(result.kl[m]):.4g}, target {float(result.kl_target[m]):.4g})",
-                world=state.name,
-                condition=m,
-                iteration=self.iteration,
-            )
-            raise self._with_dynamics_note(error, state)
+        held = result.at_cap
+        if bool(held.any()):
+            for m in held.nonzero().flatten().tolist():
+                note = NumericalError(
+                    f"eta reached its cap {config.max_eta:g} without meeting the KL target "
+                    f"(last KL {float(result.kl[m]):.4g}, target {float(result.kl_target[m]):.4g})",
+                    world=state.name,
+                    condition=m,
+                    iteration=self.iteration,
+                )
+                note = self._with_dynamics_note(note, state)
+                log.warning("%s; the condition keeps the controllers its KL is measured from", note)
+            result = held_at_centre(result, prev, state.current.dynamics, cost, eta=state.eta)
+        state.diagnostics["held_conditions"] = int(held.sum())
         state.eta = result.eta
         self._adopt(state, result)
 
