@@ -551,7 +551,7 @@ def held_at_centre(
     cap = result.at_cap
 
     def pick(name: str) -> torch.Tensor:
-        new, kept = getattr(result.gains, name), getattr(centre, name).to(_f64)
+        new, kept = getattr(result.gains, name), getattr(centre, name)  # both float64
         return torch.where(cap.reshape(-1, *(1,) * (new.dim() - 1)), kept, new)
 
     gains = LinearGaussianGains(**{name: pick(name) for name in ("K", "k", "cov", "chol", "precision")})
