@@ -74,6 +74,8 @@ NEWER_OPTIONS = {
     "gps.pi2_policy_feedback": False,
     "gps.feedback_weight": 0.0,
 }
+#: Limits on failure, not shapes of training: a run they stopped resumes with a looser one.
+NOT_IDENTITY = ("gps.max_held_iterations",)
 
 
 def run_identity(run: RunConfig, universe: Universe, split: Split) -> dict:
@@ -95,6 +97,8 @@ def run_identity(run: RunConfig, universe: Universe, split: Split) -> dict:
     if run.pretrain.images:
         parts["pretrain"] = dataclasses.asdict(run.pretrain_config())
     identity = flatten(parts)
+    for key in NOT_IDENTITY:
+        del identity[key]
     for key, default in NEWER_OPTIONS.items():
         if identity[key] == default:
             del identity[key]

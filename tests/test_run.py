@@ -280,6 +280,9 @@ def test_an_existing_run_is_never_overwritten_nor_resumed_under_another_config(t
         run.resume_point(changed, checkpoint, run.run_identity(changed, universe, split))
     longer = composed_run("universe=tiny", "gps.iterations=5", "resume=true")  # training may go on
     assert run.resume_point(longer, checkpoint, run.run_identity(longer, universe, split)).iteration == 4
+    # a run stopped on conditions held too long resumes with a looser limit
+    looser = composed_run("universe=tiny", "gps.max_held_iterations=10", "resume=true")
+    assert run.resume_point(looser, checkpoint, run.run_identity(looser, universe, split)).iteration == 4
     # a finished bank may be fine-tuned again with another budget
     budget = composed_run("universe=tiny", "eval.finetune_samples_per_condition=20", "resume=true")
     assert run.resume_point(budget, checkpoint, run.run_identity(budget, universe, split)).iteration == 4

@@ -356,6 +356,27 @@ def test_a_condition_that_meets_its_kl_bound_is_not_held():
     assert diagnostics["held_conditions"] == 0 and diagnostics["kl"] > 0
 
 
+@pytest.mark.parametrize("algo", ["mdgps", "badmm"])
+def test_a_condition_held_max_held_iterations_in_a_row_stops_the_run_even_across_a_resume(algo):
+    """The count of iterations a condition has been held in a row goes into the checkpoint; the
+    iteration that brings it to ``max_held_iterations`` raises, naming the condition and its
+    dynamics. BADMM's several C-steps an iteration count once."""
+    options = dict(worlds=GRID[:1], algo=algo, kl_step=1e-9, max_eta=1e-3, max_held_iterations=2)
+    trainer = trainer_for(**options)
+    assert trainer.step()["three_link/reach_red"]["held_conditions"] == 4
+    resumed = trainer_for(**options)
+    resumed.load_state_dict(trainer.state_dict())
+    stopped = (
+        r"held at its centre 2 iterations in a row \(gps.max_held_iterations=2\): no eta up to the cap "
+        r"0.001 meets its KL bound; the fitted dynamics of this condition let a deviation grow .*"
+        r"\[world=three_link/reach_red, condition=0, iteration=1\]$"
+    )
+    with pytest.raises(NumericalError, match=stopped):
+        resumed.step()
+    with pytest.raises(ValueError, match="gps.max_held_iterations must be at least 1, got 0"):
+        small_config(max_held_iterations=0)
+
+
 def test_the_bank_acts_without_dropout_and_trains_again_even_when_sampling_fails(monkeypatch):
     trainer = trainer_for(worlds=GRID[:1])
     state = trainer.states["three_link/reach_red"]

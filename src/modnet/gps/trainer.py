@@ -146,6 +146,9 @@ class GPSConfig:
     #: controllers its KL is measured from for the iteration, with a warning that names it
     #: (``held_conditions`` in the diagnostics; :func:`~modnet.gps.lqr.held_at_centre`)
     max_eta: float = 1e16
+    #: a condition held so for this many iterations in a row is not being repaired: the run
+    #: stops with a ``NumericalError`` that names it
+    max_held_iterations: int = 3
     sgd_steps: int = 1000
     initial_sgd_steps: int = 1000
     batch_per_world: int = 128
@@ -263,7 +266,13 @@ class GPSConfig:
     seed: int = 0
 
     def __post_init__(self) -> None:
-        for name in ("samples_per_condition", "sgd_steps", "initial_sgd_steps", "batch_per_world"):
+        for name in (
+            "samples_per_condition",
+            "sgd_steps",
+            "initial_sgd_steps",
+            "batch_per_world",
+            "max_held_iterations",
+        ):
             if getattr(self, name) < 1:
                 raise ValueError(f"gps.{name} must be at least 1, got {getattr(self, name)}")
         if not self.init_variance > 0:
@@ -420,6 +429,8 @@ class WorldState:
     policy_prior: PolicyPriorGMM
     eta: torch.Tensor  # [M]
     step_mult: torch.Tensor  # [M]
+    held_streak: torch.Tensor  # [M] iterations in a row each condition was held at its centre
+    held: torch.Tensor | None = None  # [M] held at any of this iteration's C-steps
     duals: Multipliers | None = None
     samples: Samples | None = None
     current: Linearised | None = None  # this iteration's sampling controller, dynamics, cost
@@ -547,6 +558,7 @@ class GPSTrainer:
             policy_prior=PolicyPriorGMM(prior, generator),
             eta=torch.ones(M, dtype=torch.float64),
             step_mult=torch.ones(M, dtype=torch.float64),
+            held_streak=torch.zeros(M, dtype=torch.long),
             duals=duals,
         )
 
@@ -609,6 +621,8 @@ class GPSTrainer:
             self._mdgps_update(states, outputs_ready=from_policy)
         else:
             self._badmm_update(states, outputs_ready=from_policy)
+        for state in states:
+            self._count_holds(state)
         diagnostics = {s.name: self._diagnose(s) for s in states}
         self.history.append(diagnostics)
         self.iteration += 1
@@ -640,6 +654,7 @@ class GPSTrainer:
         state.previous = state.current
         state.current = Linearised(state.controller.gains, dynamics, cost)  # a snapshot
         state.samples = samples
+        state.held = torch.zeros_like(state.held_streak, dtype=torch.bool)
         state.diagnostics = {
             "sampled_cost": float(sampled.mean()),
             "distance": float(samples.distance.mean()),
@@ -862,9 +877,27 @@ class GPSTrainer:
                 note = self._with_dynamics_note(note, state)
                 log.warning("%s; the condition keeps the controllers its KL is measured from", note)
             result = held_at_centre(result, prev, state.current.dynamics, cost, eta=state.eta)
-        state.diagnostics["held_conditions"] = int(held.sum())
+        state.held |= held  # BADMM runs several C-steps an iteration
+        state.diagnostics["held_conditions"] = int(state.held.sum())
         state.eta = result.eta
         self._adopt(state, result)
+
+    def _count_holds(self, state: WorldState) -> None:
+        """Count the iterations in a row each condition was held at its centre; one held
+        ``max_held_iterations`` times is not being repaired, and the run stops on it."""
+        state.held_streak = torch.where(state.held, state.held_streak + 1, 0)
+        m = int(state.held_streak.argmax())
+        streak = int(state.held_streak[m])
+        if streak >= self.config.max_held_iterations:
+            error = NumericalError(
+                f"held at its centre {streak} iterations in a row (gps.max_held_iterations="
+                f"{self.config.max_held_iterations}): no eta up to the cap {self.config.max_eta:g} "
+                "meets its KL bound",
+                world=state.name,
+                condition=m,
+                iteration=self.iteration,
+            )
+            raise self._with_dynamics_note(error, state)
 
     @staticmethod
     def _adopt(state: WorldState, result: LQRResult | PI2Result) -> None:
@@ -1266,6 +1299,7 @@ def _world_state_dict(state: WorldState) -> dict:
         "controller": _gains_dict(state.controller.gains),
         "eta": state.eta,
         "step_mult": state.step_mult,
+        "held_streak": state.held_streak,
         "duals": _fields_dict(state.duals),
         "current": _linearised_dict(state.current),
         "dynamics_prior": _prior_dict(state.dynamics_prior),
@@ -1277,6 +1311,7 @@ def _world_state_dict(state: WorldState) -> dict:
 def _load_world_state(state: WorldState, d: dict) -> None:
     state.controller.set_gains(_gains_from(d["controller"]))
     state.eta, state.step_mult = d["eta"], d["step_mult"]
+    state.held_streak = d.get("held_streak", torch.zeros_like(state.held_streak))  # older checkpoints lack it
     state.duals = None if d["duals"] is None else Multipliers(**d["duals"])
     state.current, state.previous = _linearised_from(d["current"]), None
     _load_prior(state.dynamics_prior, d["dynamics_prior"])
