@@ -12,7 +12,8 @@ with a random network and the wrong task module, as in the paper's tables.
     python run.py resume=true hydra.run.dir=outputs/<universe>/<date>   # continue a killed run
 
 Everything a run writes goes to its directory: checkpoint.pt, bank/, history.json,
-results.json, zero_shot.csv, the figures, and the logger's files (wandb offline by default).
+results.json, zero_shot.csv, the figures, run.log (what it printed, timestamped) and the
+logger's files (wandb offline by default).
 """
 
 from __future__ import annotations
@@ -35,6 +36,7 @@ import torch  # noqa: E402
 from hydra.core.hydra_config import HydraConfig  # noqa: E402
 from omegaconf import DictConfig, OmegaConf  # noqa: E402
 from tqdm import tqdm  # noqa: E402
+from tqdm.contrib.logging import logging_redirect_tqdm  # noqa: E402
 
 from modnet import report  # noqa: E402
 from modnet.bank import ModuleBank  # noqa: E402
@@ -50,6 +52,8 @@ from modnet.worlds import get_world  # noqa: E402
 CONF = Path(__file__).resolve().parent / "conf"
 PRETRAIN_REPORT = "pretrain.json"  # the vision pretraining's figures, kept for a resumed run
 register_configs()
+#: The job's progress: to the console and, through Hydra's logging, to the run's own ``run.log``.
+job_log = logging.getLogger("run")
 
 
 #: Options added after some checkpoints were written, with the value that changes nothing.
@@ -110,7 +114,7 @@ def resume_point(run: RunConfig, checkpoint: Path, identity: dict) -> Checkpoint
     if run.resume:
         if checkpoint.exists():
             return load_checkpoint(checkpoint, identity)
-        print(f"resume=true but no checkpoint at {checkpoint}: starting from iteration 0")
+        job_log.info(f"resume=true but no checkpoint at {checkpoint}: starting from iteration 0")
         return None
     if checkpoint.exists():
         raise CheckpointError(
@@ -123,17 +127,18 @@ def resume_point(run: RunConfig, checkpoint: Path, identity: dict) -> Checkpoint
 def train(trainer: GPSTrainer, iterations: int, checkpoint: Path, identity: dict, log: RunLogger) -> None:
     """GPS iterations up to ``iterations``; a checkpoint after each, so a killed run loses at most one."""
     bar = tqdm(range(trainer.iteration, iterations), desc="GPS", initial=trainer.iteration, total=iterations)
-    for _ in bar:
-        diagnostics = trainer.step()
-        save_checkpoint(checkpoint, trainer.state_dict(), identity)
-        log.iteration(trainer.iteration, diagnostics)
-        bar.set_postfix(mean_distance=f"{np.mean([d['distance'] for d in diagnostics.values()]):.3f}")
-        bar.write(
-            f"iteration {trainer.iteration}: "
-            + ", ".join(
-                f"{w} d={d['distance']:.3f} c={d['sampled_cost']:.1f}" for w, d in diagnostics.items()
+    with logging_redirect_tqdm():  # log lines above the bar, not through it
+        for _ in bar:
+            diagnostics = trainer.step()
+            save_checkpoint(checkpoint, trainer.state_dict(), identity)
+            log.iteration(trainer.iteration, diagnostics)
+            bar.set_postfix(mean_distance=f"{np.mean([d['distance'] for d in diagnostics.values()]):.3f}")
+            job_log.info(
+                f"iteration {trainer.iteration}: "
+                + ", ".join(
+                    f"{w} d={d['distance']:.3f} c={d['sampled_cost']:.1f}" for w, d in diagnostics.items()
+                )
             )
-        )
 
 
 def pretrain(run: RunConfig, split: Split, bank: ModuleBank, report_file: Path) -> None:
@@ -141,7 +146,7 @@ def pretrain(run: RunConfig, split: Split, bank: ModuleBank, report_file: Path) 
     pretrained = pretrain_vision(bank, split.training, run.pretrain_config())
     report.write_json(report_file, pretrained)
     for module, figures in pretrained.items():
-        print(
+        job_log.info(
             f"pretrained {module}'s convolutions on {figures['images']} scenes: objects found "
             f"{figures['val_error']:.3f} m off (the mean position: {figures['baseline_error']:.3f} m)"
         )
@@ -196,14 +201,14 @@ def compare_finetuning(
             wrong_task=wrong_task,
             starts=run.eval.finetune_starts,
             pixels=universe.pixels,
-            progress=lambda s, i, d, sampled: print(
+            progress=lambda s, i, d, sampled: job_log.info(
                 f"fine-tuning from {s}, iteration {i}: test distance {d:.3f} (its samples {sampled:.3f})"
             ),
         )
     except FineTuningFailed as err:
         tuning, failure = err.result, err
         for start, message in tuning.failed.items():
-            print(f"fine-tuning from {start} stopped: {message}")
+            job_log.info(f"fine-tuning from {start} stopped: {message}")
     title = f"fine-tuning {world_name(split.holdout)}"
     success = get_world(*split.holdout).task.success_distance
     report.plot_finetune(
@@ -267,7 +272,7 @@ def main(cfg: DictConfig) -> None:
         trainer = GPSTrainer(bank, split.training, run.gps_config(), pixels=universe.pixels)
         if resume_from is not None:
             trainer.load_state_dict(resume_from.trainer)
-            print(f"resumed {checkpoint} after iteration {trainer.iteration}")
+            job_log.info(f"resumed {checkpoint} after iteration {trainer.iteration}")
         train(trainer, run.gps.iterations, checkpoint, identity, log)
         seconds["train"] = trainer.seconds  # GPS iterations only, summed over a resumed run's parts
 
@@ -290,7 +295,7 @@ def main(cfg: DictConfig) -> None:
             # as measured per module when it ran, so a resumed run reports it too
             seconds["pretrain"] = sum(f["seconds"] for f in results["pretrain"].values())
         seconds["evaluate"] = time.perf_counter() - start
-        print(report.zero_shot_table(results))
+        job_log.info(report.zero_shot_table(results))
         report.write_zero_shot_csv(results, run_dir / "zero_shot.csv")
 
         # 5. optionally: GPS on the held-out world from four starts
@@ -325,7 +330,7 @@ def main(cfg: DictConfig) -> None:
             step=trainer.iteration,
         )
         log.figures({name: run_dir / f"{name}.png" for name in figures})
-        print(f"results in {run_dir}")
+        job_log.info(f"results in {run_dir}")
     if failure is not None:  # after the logger has closed, so that it keeps everything
         raise failure
 

@@ -82,6 +82,14 @@ def test_tiny_pipeline_end_to_end_in_under_two_minutes(tiny_run):
     ]:
         assert (run_dir / name).stat().st_size > 0, name
     assert "composed" in done.stdout and "Zero-shot four_link/reach_black" in done.stdout
+    # run.log keeps what it printed: every GPS iteration, the table, every fine-tuning iteration
+    logged = (run_dir / "run.log").read_text()
+    for line in [f"iteration {i}: " for i in range(1, ITERATIONS + 1)] + [
+        "Zero-shot four_link/reach_black",
+        "fine-tuning from composed, iteration 1: test distance",
+        f"results in {run_dir}",
+    ]:
+        assert line in logged and line in done.stdout, line
     scalars = run_dir / "tiny-four_link-reach_black" / "scalars"
     assert list((scalars / "train").rglob("distance.csv"))
     assert (scalars / "finetune" / "composed" / "sampled_distance.csv").stat().st_size > 0
