@@ -825,27 +825,37 @@ class GPSTrainer:
         state.step_mult = adapt_step_mult(state.step_mult, predicted, actual, self.config.lqr())
 
     @staticmethod
-    def _with_dynamics_note(
-        error: NumericalError, state: WorldState, dynamics: LinearGaussianDynamics | None = None
-    ) -> NumericalError:
-        """``error`` with the failing condition's fitted dynamics (``dynamics``, by default the
-        iteration's) described: how fast they let a deviation grow and in which state entry. An
-        LQR that cannot meet its KL bound or keep ``Q_uu`` PD at any eta usually has dynamics
-        that blow up (radius well above 1)."""
-        m = error.condition
+    def _dynamics_note(
+        state: WorldState, m: int | None, dynamics: LinearGaussianDynamics | None = None
+    ) -> str:
+        """Condition ``m``'s fitted dynamics (``dynamics``, by default the iteration's) described,
+        as a clause to append to a message: how fast they let a deviation grow and in which state
+        entry; empty where there is nothing to describe. An LQR that cannot meet its KL bound or
+        keep ``Q_uu`` PD at any eta usually has dynamics that blow up (radius well above 1)."""
         if dynamics is None and state.current is not None:
             dynamics = state.current.dynamics
         if m is None or dynamics is None or not bool(dynamics.F[m].isfinite().all()):
-            return error  # a NaN in the fit is its own message
+            return ""  # a NaN in the fit is its own message
         radius = dynamics.spectral_radius()[m, :-1]  # the last step has no successor
         t = int(radius.argmax())
         label = state.sampler.world.state_labels[dynamics.dominant_mode(m, t)]
-        note = (
+        return (
             f"; the fitted dynamics of this condition let a deviation grow by up to "
             f"{float(radius[t]):.3g}x a step (step {t}, fed mostly by {label}; above 1.05 at "
             f"{int((radius > 1.05).sum())} of {radius.numel()} steps)"
         )
-        return NumericalError(error.reason + note, world=error.world, condition=m, iteration=error.iteration)
+
+    @classmethod
+    def _with_dynamics_note(
+        cls, error: NumericalError, state: WorldState, dynamics: LinearGaussianDynamics | None = None
+    ) -> NumericalError:
+        """``error`` with its condition's fitted dynamics described (``_dynamics_note``)."""
+        note = cls._dynamics_note(state, error.condition, dynamics)
+        if not note:
+            return error
+        return NumericalError(
+            error.reason + note, world=error.world, condition=error.condition, iteration=error.iteration
+        )
 
     def _c_step(self, state: WorldState, cost: QuadraticCost, prev: LinearGaussianGains, omega=0.0) -> None:
         config = self.config.lqr()
@@ -867,15 +877,13 @@ class GPSTrainer:
         held = result.at_cap
         if bool(held.any()):
             for m in held.nonzero().flatten().tolist():
-                note = NumericalError(
-                    f"eta reached its cap {config.max_eta:g} without meeting the KL target "
-                    f"(last KL {float(result.kl[m]):.4g}, target {float(result.kl_target[m]):.4g})",
-                    world=state.name,
-                    condition=m,
-                    iteration=self.iteration,
+                log.warning(
+                    "eta reached its cap %g without meeting the KL target (last KL %.4g, target %.4g)%s "
+                    "[world=%s, condition=%d, iteration=%d]; the condition keeps the controllers its KL "
+                    "is measured from",
+                    config.max_eta, float(result.kl[m]), float(result.kl_target[m]),
+                    self._dynamics_note(state, m), state.name, m, self.iteration,
                 )
-                note = self._with_dynamics_note(note, state)
-                log.warning("%s; the condition keeps the controllers its KL is measured from", note)
             result = held_at_centre(result, prev, state.current.dynamics, cost, eta=state.eta)
         state.held |= held  # BADMM runs several C-steps an iteration
         state.diagnostics["held_conditions"] = int(state.held.sum())
