@@ -430,7 +430,7 @@ class WorldState:
     eta: torch.Tensor  # [M]
     step_mult: torch.Tensor  # [M]
     held_streak: torch.Tensor  # [M] iterations in a row each condition was held at its centre
-    held: torch.Tensor | None = None  # [M] held at any of this iteration's C-steps
+    held: torch.Tensor  # [M] held at any of this iteration's C-steps
     duals: Multipliers | None = None
     samples: Samples | None = None
     current: Linearised | None = None  # this iteration's sampling controller, dynamics, cost
@@ -559,6 +559,7 @@ class GPSTrainer:
             eta=torch.ones(M, dtype=torch.float64),
             step_mult=torch.ones(M, dtype=torch.float64),
             held_streak=torch.zeros(M, dtype=torch.long),
+            held=torch.zeros(M, dtype=torch.bool),
             duals=duals,
         )
 
@@ -654,7 +655,7 @@ class GPSTrainer:
         state.previous = state.current
         state.current = Linearised(state.controller.gains, dynamics, cost)  # a snapshot
         state.samples = samples
-        state.held = torch.zeros_like(state.held_streak, dtype=torch.bool)
+        state.held.fill_(False)
         state.diagnostics = {
             "sampled_cost": float(sampled.mean()),
             "distance": float(samples.distance.mean()),
