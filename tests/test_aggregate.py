@@ -66,6 +66,9 @@ def test_a_two_job_joblib_multirun_writes_two_results_and_aggregates(tmp_path):
         "four_link/reach_black",
         "three_link/reach_red",
     }
+    for r in results:  # each job's progress in its own run.log, not only in the launcher's stdout
+        held_out = json.loads(r.read_text())["holdout"]
+        assert f"Zero-shot {held_out}" in (r.parent / "run.log").read_text()
     main([str(tmp_path)])  # python -m modnet.aggregate SWEEP_DIR
     assert (tmp_path / "heatmap.png").exists()
     rows = (tmp_path / "heatmap.csv").read_text().splitlines()
