@@ -208,7 +208,7 @@ def compare_finetuning(
     except FineTuningFailed as err:
         tuning, failure = err.result, err
         for start, message in tuning.failed.items():
-            job_log.info(f"fine-tuning from {start} stopped: {message}")
+            job_log.warning(f"fine-tuning from {start} stopped: {message}")
     title = f"fine-tuning {world_name(split.holdout)}"
     success = get_world(*split.holdout).task.success_distance
     report.plot_finetune(

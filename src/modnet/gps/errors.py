@@ -17,7 +17,22 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["NumericalError", "check_finite"]
+__all__ = ["NumericalError", "check_finite", "where"]
+
+
+def where(*, world: str | None = None, condition: int | None = None, iteration: int | None = None) -> str:
+    """``" [world=..., condition=..., iteration=...]"`` for the fields given, empty for none: how a
+    numerical message, raised or only warned, says where it happened.
+
+    >>> where(world="three_link/reach_red", iteration=2)
+    ' [world=three_link/reach_red, iteration=2]'
+    """
+    context = ", ".join(
+        f"{name}={value}"
+        for name, value in (("world", world), ("condition", condition), ("iteration", iteration))
+        if value is not None
+    )
+    return f" [{context}]" if context else ""
 
 
 class NumericalError(RuntimeError):
@@ -39,12 +54,7 @@ class NumericalError(RuntimeError):
         self.condition = condition
         self.iteration = iteration
         self.reason = message
-        context = ", ".join(
-            f"{name}={value}"
-            for name, value in (("world", world), ("condition", condition), ("iteration", iteration))
-            if value is not None
-        )
-        super().__init__(f"{message} [{context}]" if context else message)
+        super().__init__(message + where(world=world, condition=condition, iteration=iteration))
 
     def with_context(
         self,

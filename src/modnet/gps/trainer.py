@@ -57,7 +57,7 @@ from modnet.gps.dynamics import (
     fit_policy_linearization,
     policy_linearization_from_jacobian,
 )
-from modnet.gps.errors import NumericalError, check_finite
+from modnet.gps.errors import NumericalError, check_finite, where
 from modnet.gps.loss import PolicyRegressionLoss, state_jacobian
 from modnet.gps.lqr import (
     LQRConfig,
@@ -879,11 +879,11 @@ class GPSTrainer:
         if bool(held.any()):
             for m in held.nonzero().flatten().tolist():
                 log.warning(
-                    "eta reached its cap %g without meeting the KL target (last KL %.4g, target %.4g)%s "
-                    "[world=%s, condition=%d, iteration=%d]; the condition keeps the controllers its KL "
-                    "is measured from",
+                    "eta reached its cap %g without meeting the KL target (last KL %.4g, target %.4g)%s%s; "
+                    "the condition keeps the controllers its KL is measured from",
                     config.max_eta, float(result.kl[m]), float(result.kl_target[m]),
-                    self._dynamics_note(state, m), state.name, m, self.iteration,
+                    self._dynamics_note(state, m),
+                    where(world=state.name, condition=m, iteration=self.iteration),
                 )
             result = held_at_centre(result, prev, state.current.dynamics, cost, eta=state.eta)
         state.held |= held  # BADMM runs several C-steps an iteration
