@@ -175,7 +175,7 @@ runpy.run_path({str(ROOT / "run.py")!r}, run_name="__main__")
     message = "injected Q_uu failure [world=four_link/reach_black, condition=2, iteration=1]"
     assert f"fine-tuning failed from wrong_task: {message}" in done.stderr
     assert "Zero-shot four_link/reach_black" in done.stdout
-    assert f"fine-tuning from wrong_task stopped: {message}" in done.stdout
+    assert f"[run][WARNING] - fine-tuning from wrong_task stopped: {message}" in done.stdout  # not INFO
     results = json.loads((run_dir / "results.json").read_text())
     assert results["finetune_failed"] == {"wrong_task": message}
     lengths = {start: len(curve) for start, curve in results["finetune"].items()}
