@@ -17,14 +17,16 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["NumericalError", "check_finite", "where"]
+__all__ = ["NumericalError", "check_finite", "location_suffix"]
 
 
-def where(*, world: str | None = None, condition: int | None = None, iteration: int | None = None) -> str:
+def location_suffix(
+    *, world: str | None = None, condition: int | None = None, iteration: int | None = None
+) -> str:
     """``" [world=..., condition=..., iteration=...]"`` for the fields given, empty for none: how a
     numerical message, raised or only warned, says where it happened.
 
-    >>> where(world="three_link/reach_red", iteration=2)
+    >>> location_suffix(world="three_link/reach_red", iteration=2)
     ' [world=three_link/reach_red, iteration=2]'
     """
     context = ", ".join(
@@ -54,7 +56,7 @@ class NumericalError(RuntimeError):
         self.condition = condition
         self.iteration = iteration
         self.reason = message
-        super().__init__(message + where(world=world, condition=condition, iteration=iteration))
+        super().__init__(message + location_suffix(world=world, condition=condition, iteration=iteration))
 
     def with_context(
         self,

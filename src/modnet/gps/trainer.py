@@ -57,7 +57,7 @@ from modnet.gps.dynamics import (
     fit_policy_linearization,
     policy_linearization_from_jacobian,
 )
-from modnet.gps.errors import NumericalError, check_finite, where
+from modnet.gps.errors import NumericalError, check_finite, location_suffix
 from modnet.gps.loss import PolicyRegressionLoss, state_jacobian
 from modnet.gps.lqr import (
     LQRConfig,
@@ -883,7 +883,7 @@ class GPSTrainer:
                     "the condition keeps the controllers its KL is measured from",
                     config.max_eta, float(result.kl[m]), float(result.kl_target[m]),
                     self._dynamics_note(state, m),
-                    where(world=state.name, condition=m, iteration=self.iteration),
+                    location_suffix(world=state.name, condition=m, iteration=self.iteration),
                 )
             result = held_at_centre(result, prev, state.current.dynamics, cost, eta=state.eta)
         state.held |= held  # BADMM runs several C-steps an iteration
