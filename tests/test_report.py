@@ -24,10 +24,14 @@ def git(repo: Path, *args: str) -> str:
 
 @pytest.fixture
 def checkout(tmp_path):
-    """A git repository laid out like modnet's: the package under src/modnet, committed."""
+    """A git repository laid out like modnet's: the package under src/modnet, a domain, a config,
+    run.py and a document, committed."""
     package = tmp_path / "src" / "modnet"
     package.mkdir(parents=True)
     (package / "__init__.py").write_text("x = 1\n")
+    for path in ("domains/arm.xml", "conf/config.yaml", "run.py", "docs/RESULTS.md"):
+        (tmp_path / path).parent.mkdir(exist_ok=True)
+        (tmp_path / path).write_text("first\n")
     git(tmp_path, "init", "-q")
     git(tmp_path, "add", ".")
     git(tmp_path, "commit", "-q", "-m", "first")
@@ -42,6 +46,16 @@ def test_a_checkout_reports_its_commit_and_whether_tracked_files_changed(checkou
     assert code_version(package)["dirty"] is False
     (package / "__init__.py").write_text("x = 2\n")
     assert code_version(package) == {"commit": git(checkout, "rev-parse", "HEAD"), "dirty": True}
+
+
+@needs_git
+@pytest.mark.parametrize("path", ["domains/arm.xml", "conf/config.yaml", "run.py"])
+def test_dirty_counts_what_a_run_executes_and_not_the_docs(checkout, path):
+    package = checkout / "src" / "modnet"
+    (checkout / "docs" / "RESULTS.md").write_text("a result being written up while runs go on\n")
+    assert code_version(package)["dirty"] is False
+    (checkout / path).write_text("changed\n")
+    assert code_version(package)["dirty"] is True
 
 
 @needs_git

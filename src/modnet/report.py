@@ -117,13 +117,20 @@ def _cpu_model() -> str:
     return platform.processor() or platform.machine()
 
 
+RUN_PATHS = ("src/modnet", "domains", "conf", "run.py")
+"""The checkout's paths whose tracked files a run executes, relative to its root: what
+:func:`code_version` calls dirty when changed."""
+
+
 def code_version(package_dir: str | os.PathLike | None = None) -> dict[str, Any]:
     """The git commit of the modnet code that ran, for a run's ``results.json``.
 
     ``{"commit": sha, "dirty": bool}`` where ``package_dir`` (default: this package) is the
-    ``src/modnet`` of a git checkout, ``dirty`` meaning its tracked files differ from the
-    commit; ``{"commit": None, "dirty": None}`` for an installed copy, which has no commit
-    (a site-packages inside some other repository does not count as a checkout).
+    ``src/modnet`` of a git checkout, ``dirty`` meaning that a tracked file of what a run
+    executes (:data:`RUN_PATHS`: the package, ``domains/``, ``conf/`` and ``run.py``) differs
+    from the commit; edits to the docs, tests or benchmarks leave it ``False``.
+    ``{"commit": None, "dirty": None}`` for an installed copy, which has no commit (a
+    site-packages inside some other repository does not count as a checkout).
 
     Examples:
         >>> code_version("/")  # not a modnet checkout
@@ -139,11 +146,13 @@ def code_version(package_dir: str | os.PathLike | None = None) -> dict[str, Any]
         return done.stdout.strip()
 
     try:
-        if package != Path(git("rev-parse", "--show-toplevel")).resolve() / "src" / "modnet":
+        top = Path(git("rev-parse", "--show-toplevel")).resolve()
+        if package != top / "src" / "modnet":
             return unknown
+        paths = [str(top / path) for path in RUN_PATHS]
         return {
             "commit": git("rev-parse", "HEAD"),
-            "dirty": bool(git("status", "--porcelain", "--untracked-files=no")),
+            "dirty": bool(git("status", "--porcelain", "--untracked-files=no", "--", *paths)),
         }
     except (OSError, subprocess.SubprocessError):  # no git, or not inside a repository
         return unknown
