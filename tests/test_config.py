@@ -2,6 +2,7 @@
 
 import dataclasses
 import functools
+import logging
 
 import pytest
 from commands import ROOT
@@ -117,6 +118,9 @@ def test_overrides_reach_the_library_configs():
     )
     assert smoothed.finetune_gps_config().pi2_step_smoothing == 5.0
     assert smoothed.gps_config().pi2_step_smoothing == 0.0
+    stepped = composed("universe=tiny", "algo=mdgps", "eval.finetune_c_step=pi2", "eval.finetune_pi2_kl=0.25")
+    assert stepped.finetune_gps_config().pi2_kl == 0.25
+    assert stepped.gps_config().pi2_kl == GPSConfig.pi2_kl
     fed_back = composed(
         "universe=tiny", "algo=mdgps", "eval.finetune_c_step=pi2", "eval.finetune_pi2_policy_feedback=true"
     )
@@ -125,6 +129,21 @@ def test_overrides_reach_the_library_configs():
     sobolev = composed("universe=tiny", "algo=mdgps", "eval.finetune_feedback_weight=10")
     assert sobolev.finetune_gps_config().feedback_weight == 10.0
     assert sobolev.gps_config().feedback_weight == 0.0
+
+
+def test_the_lqr_step_under_a_pi2_fine_tuning_is_named_as_unread_and_the_pi2_step_given(caplog):
+    """PI2 steps by gps.pi2_kl, not gps.kl_step: an eval.finetune_kl_step it will not read is
+    said so before any work (a warning, since published PI2 commands carry one)."""
+    pi2 = ("universe=tiny", "algo=mdgps", "eval.finetune_c_step=pi2", "eval.finetune_kl_step=0.2")
+    with caplog.at_level(logging.WARNING, logger="modnet.config"):
+        composed(*pi2).check()
+    assert "eval.finetune_kl_step=0.2 is the LQR's step" in caplog.text
+    assert "eval.finetune_pi2_kl (now 1.0)" in caplog.text
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="modnet.config"):
+        composed(*pi2[:2], "eval.finetune_c_step=pilqr", "eval.finetune_kl_step=0.2").check()
+        composed(*pi2[:3], "eval.finetune_pi2_kl=0.5").check()
+    assert caplog.text == ""
 
 
 def test_mdgps_only_options_under_badmm_are_refused_before_any_work_naming_the_fix():
@@ -173,6 +192,7 @@ def test_literal_choices_and_values_no_type_rules_out_fail_with_the_key():
         ),
         ("gps.kl_step", -1.0, r"gps\.kl_step must be positive, got -1\.0"),
         ("eval.finetune_init_variance", 0.0, r"finetune_init_variance=0\.0: gps\.init_variance must be"),
+        ("eval.finetune_pi2_kl", 0.0, r"finetune_pi2_kl=0\.0: gps\.pi2_kl and gps\.pi2_covariance_damp"),
         (
             "eval.finetune_pi2_covariance_damping",
             -1.0,

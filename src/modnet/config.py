@@ -24,6 +24,7 @@ Examples:
 from __future__ import annotations
 
 import dataclasses
+import logging
 import typing
 from collections.abc import Mapping
 from dataclasses import MISSING, dataclass, field, fields, is_dataclass
@@ -39,6 +40,8 @@ from modnet.gps.trainer import GPSConfig, check_train_modules
 from modnet.pretrain import PretrainConfig
 from modnet.universes import Split, Universe, get_universe
 from modnet.worlds import CONDITION_SETS, NUM_FIXED_CONDITIONS
+
+log = logging.getLogger(__name__)
 
 __all__ = [
     "BankSchema",
@@ -178,8 +181,9 @@ class EvalConfig:
         finetune_sample_on_policy: every fine-tuning start samples the composed policy itself
             from its second iteration on, instead of the controllers (``gps.sample_on_policy``
             for fine-tuning only; not part of a checkpoint's identity either).
-        finetune_kl_step: the C-step's KL budget per time step in every fine-tuning start
-            (None: ``gps.kl_step``); not part of a checkpoint's identity.
+        finetune_kl_step: the LQR's KL budget per time step in every fine-tuning start
+            (None: ``gps.kl_step``); not part of a checkpoint's identity. PI2 does not read it
+            (its step is ``finetune_pi2_kl``); PILQR's LQR pass does.
         finetune_sgd_steps: the S-step's SGD steps per iteration in every fine-tuning start
             (None: ``gps.sgd_steps``); not part of a checkpoint's identity.
         finetune_dynamics_prior_per_condition: every fine-tuning start keeps one dynamics
@@ -206,6 +210,9 @@ class EvalConfig:
         finetune_init_variance: the variance of the first controllers of the scratch starts
             (the transferred starts begin from the composed policy's linearisation and its
             spread); None: ``gps.init_variance``. Not part of a checkpoint's identity.
+        finetune_pi2_kl: the KL from uniform of the sample weights of every fine-tuning start's
+            PI2 (or PILQR) step, per time step (:class:`~modnet.gps.GPSConfig`'s ``pi2_kl``;
+            smaller: a smaller step); None: ``gps.pi2_kl``. Not part of a checkpoint's identity.
         finetune_pi2_covariance_damping: how slowly every fine-tuning start's PI2 (or PILQR)
             shrinks its exploration (larger: slower; :class:`~modnet.gps.GPSConfig`'s
             ``pi2_covariance_damping``); None: ``gps.pi2_covariance_damping``. Not part of a
@@ -254,6 +261,7 @@ class EvalConfig:
     finetune_train_modules: str | None = None
     finetune_relabel_policy_states: str | None = None
     finetune_init_variance: float | None = None
+    finetune_pi2_kl: float | None = None
     finetune_pi2_covariance_damping: float | None = None
     finetune_relabel_tracking_weight: float | None = None
     finetune_pi2_policy_weight: float | None = None
@@ -276,6 +284,7 @@ FINETUNE_GPS_OVERRIDES = (
     "train_modules",
     "relabel_policy_states",
     "init_variance",
+    "pi2_kl",
     "pi2_covariance_damping",
     "relabel_tracking_weight",
     "pi2_policy_weight",
@@ -381,6 +390,13 @@ class RunConfig:
     def check(self) -> None:
         """Values no schema type can rule out; :class:`ConfigError` naming the key."""
         finetune = self.finetune_gps_config()  # the training's GPS options, then fine-tuning's overrides
+        if finetune.c_step == "pi2" and self.eval.finetune_kl_step is not None:
+            # kept a warning: published PI2 commands carry it, and they must still run as they did
+            log.warning(
+                f"eval.finetune_kl_step={self.eval.finetune_kl_step} is the LQR's step, and the "
+                "fine-tuning C-step is pi2, which does not read it: its step is eval.finetune_pi2_kl "
+                f"(now {finetune.pi2_kl})"
+            )
         self.bank_config()
         self.pretrain_config()
         if self.bank.policy not in ("modular", "monolithic"):
