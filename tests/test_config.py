@@ -131,9 +131,9 @@ def test_overrides_reach_the_library_configs():
     assert sobolev.gps_config().feedback_weight == 0.0
 
 
-def test_the_lqr_step_under_a_pi2_fine_tuning_is_named_as_unread_and_the_pi2_step_given(caplog):
-    """PI2 steps by gps.pi2_kl, not gps.kl_step: an eval.finetune_kl_step it will not read is
-    said so before any work (a warning, since published PI2 commands carry one)."""
+def test_the_lqr_step_under_pi2_is_named_as_unread_and_the_pi2_step_given(caplog):
+    """PI2 steps by gps.pi2_kl, not gps.kl_step: a gps.kl_step or eval.finetune_kl_step it will
+    not read is said so before any work (a warning, since published PI2 commands carry one)."""
     pi2 = ("universe=tiny", "algo=mdgps", "eval.finetune_c_step=pi2", "eval.finetune_kl_step=0.2")
     with caplog.at_level(logging.WARNING, logger="modnet.config"):
         composed(*pi2).check()
@@ -141,8 +141,15 @@ def test_the_lqr_step_under_a_pi2_fine_tuning_is_named_as_unread_and_the_pi2_ste
     assert "eval.finetune_pi2_kl (now 1.0)" in caplog.text
     caplog.clear()
     with caplog.at_level(logging.WARNING, logger="modnet.config"):
+        composed("universe=tiny", "algo=mdgps", "gps.c_step=pi2", "gps.kl_step=0.5").check()
+    assert "gps.kl_step=0.5 is the LQR's step" in caplog.text and "gps.pi2_kl (now 1.0)" in caplog.text
+    assert "eval.finetune_kl_step" not in caplog.text  # fine-tuning inherits it: said once
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="modnet.config"):
         composed(*pi2[:2], "eval.finetune_c_step=pilqr", "eval.finetune_kl_step=0.2").check()
         composed(*pi2[:3], "eval.finetune_pi2_kl=0.5").check()
+        composed("universe=tiny", "algo=mdgps", "gps.c_step=pi2").check()
+        composed("universe=tiny", "gps.kl_step=0.5").check()
     assert caplog.text == ""
 
 

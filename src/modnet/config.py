@@ -389,14 +389,20 @@ class RunConfig:
 
     def check(self) -> None:
         """Values no schema type can rule out; :class:`ConfigError` naming the key."""
+        training = self.gps_config()
         finetune = self.finetune_gps_config()  # the training's GPS options, then fine-tuning's overrides
-        if finetune.c_step == "pi2" and self.eval.finetune_kl_step is not None:
-            # kept a warning: published PI2 commands carry it, and they must still run as they did
-            log.warning(
-                f"eval.finetune_kl_step={self.eval.finetune_kl_step} is the LQR's step, and the "
-                "fine-tuning C-step is pi2, which does not read it: its step is eval.finetune_pi2_kl "
-                f"(now {finetune.pi2_kl})"
-            )
+        lqr_steps = (  # (key, its GPS config, the value set, None where left alone, PI2's key)
+            ("gps.kl_step", training, None if training.kl_step == GPSConfig.kl_step else training.kl_step,
+             "gps.pi2_kl"),
+            ("eval.finetune_kl_step", finetune, self.eval.finetune_kl_step, "eval.finetune_pi2_kl"),
+        )
+        for key, config, value, pi2_key in lqr_steps:
+            if config.c_step == "pi2" and value is not None:
+                # a warning: published PI2 commands carry it, and they must still run as they did
+                log.warning(
+                    f"{key}={value} is the LQR's step, and the C-step is pi2, which does not read it: "
+                    f"its step is {pi2_key} (now {config.pi2_kl})"
+                )
         self.bank_config()
         self.pretrain_config()
         if self.bank.policy not in ("modular", "monolithic"):

@@ -137,6 +137,8 @@ class GPSConfig:
     #: along each episode, renormalised to the controllers' covariance (the GPS code's
     #: ``smooth_noise``, whose default is 2.0); 0 draws white noise at every step
     noise_smoothing: float = 0.0
+    #: the LQR's KL budget per time step (with PILQR, its LQR pass's); PI2 does not read it, its
+    #: step is ``pi2_kl``
     kl_step: float = 1.0
     #: bounds of the C-step's step multiplier (the GPS code's are 0.01 and 10; RESULTS,
     #: "What did not match", measures its floor on three_link/reach)
