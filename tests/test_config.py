@@ -129,6 +129,10 @@ def test_overrides_reach_the_library_configs():
     sobolev = composed("universe=tiny", "algo=mdgps", "eval.finetune_feedback_weight=10")
     assert sobolev.finetune_gps_config().feedback_weight == 10.0
     assert sobolev.gps_config().feedback_weight == 0.0
+    redrawn = composed("universe=tiny", "seed=3", "eval.finetune_seed=7")
+    assert redrawn.finetune_gps_config().seed == 7
+    assert redrawn.gps_config().seed == 3
+    assert redrawn.finetune_gps_config().condition_seed == redrawn.gps_config().condition_seed
 
 
 def test_the_lqr_step_under_pi2_is_named_as_unread_and_the_pi2_step_given(caplog):

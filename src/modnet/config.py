@@ -237,6 +237,11 @@ class EvalConfig:
             Jacobian onto the controllers' gains with this weight (:class:`~modnet.gps.GPSConfig`'s
             ``feedback_weight``, MDGPS only); None: ``gps.feedback_weight``. Not part of a
             checkpoint's identity.
+        finetune_seed: the seed of every fine-tuning start's noise, batches and dropout, and of
+            the scratch starts' weights (:class:`~modnet.gps.GPSConfig`'s ``seed``); None:
+            ``gps.seed``. The bank, the held-out world's scenes and the zero-shot table stay
+            as they are, so several values on copies of one run (``resume=true``; not part of
+            a checkpoint's identity) measure how far fine-tuning alone moves a result.
     """
 
     conditions: str = "test"
@@ -268,6 +273,7 @@ class EvalConfig:
     finetune_pi2_step_smoothing: float | None = None
     finetune_pi2_policy_feedback: bool | None = None
     finetune_feedback_weight: float | None = None
+    finetune_seed: int | None = None
 
 
 #: the GPSConfig fields an ``eval.finetune_<field>`` sets for the fine-tuning starts alone
@@ -291,6 +297,7 @@ FINETUNE_GPS_OVERRIDES = (
     "pi2_step_smoothing",
     "pi2_policy_feedback",
     "feedback_weight",
+    "seed",
 )
 
 

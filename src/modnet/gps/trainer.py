@@ -265,6 +265,8 @@ class GPSConfig:
     #: is left to chance; the controllers' gains say how they do. 0 is off, the GPS code's
     #: (RESULTS, "the network's feedback")
     feedback_weight: float = 0.0
+    #: the torch stream of the controllers' noise, the S-step's batches and dropout, and a
+    #: scratch fine-tuning start's weights; not the scenes (``condition_seed``)
     seed: int = 0
 
     def __post_init__(self) -> None:
