@@ -27,6 +27,14 @@ conditions and its network at the test positions, iteration by iteration, at eac
 
     python benchmarks/publish_results.py finetune-figure docs/results/manipulation_*_4scenes_*.json \
         --experiment manipulation_finetune_4scenes
+
+``finetune-table`` reads the same files, groups them the same way and writes nothing: it prints
+RESULTS.md's fine-tuning cells, a markdown table per experiment (a row per seed, a column per
+start: the network's best distance at the test positions (its iteration) / its mean over the
+curve, and the first iteration below the success distance and how many were), each start's
+count of seeds that reached it and the mean of the seeds' means; its last line is the same as JSON:
+
+    python benchmarks/publish_results.py finetune-table docs/results/manipulation_*_elu_*_seed*_epyc.json
 """
 
 from __future__ import annotations
@@ -469,6 +477,30 @@ def _first_below(curve: list[float], bound: float, offset: int) -> int | None:
     return next((i + offset for i, d in enumerate(curve) if d < bound), None)
 
 
+def _experiments(published: list[dict]) -> tuple[dict[str, list[dict]], list[str]]:
+    """Published runs grouped into experiments by their command less the seed, each sorted by
+    seed and named by the options that set it apart from the others ("(no further options)"
+    where none do), and the options common to all. Raises ``ValueError`` for no runs or a
+    repeated seed within an experiment."""
+    if not published:
+        raise ValueError("no published results to read")
+    groups: dict[str, list[dict]] = {}
+    for p in published:
+        groups.setdefault(_experiment_of(p["command"]), []).append(p)
+    for experiment, runs in groups.items():
+        seeds = [p["seed"] for p in runs]
+        if len(set(seeds)) < len(seeds):
+            raise ValueError(f"a seed is given twice for {experiment!r}: {seeds}")
+        runs.sort(key=lambda p: p["seed"])
+    options = {experiment: experiment.split() for experiment in groups}
+    common = [o for o in next(iter(options.values())) if all(o in opts for opts in options.values())]
+    named = {
+        " ".join(o for o in options[experiment] if o not in common) or "(no further options)": runs
+        for experiment, runs in groups.items()
+    }
+    return named, common
+
+
 def finetune_figure(published: list[dict]) -> tuple[Figure, dict]:
     """Fine-tuning runs (published JSON, see :func:`finetuning`), grouped into experiments by
     their command less the seed: one column per experiment, each start's curve at every seed
@@ -480,27 +512,16 @@ def finetune_figure(published: list[dict]) -> tuple[Figure, dict]:
     Raises ``ValueError`` for a repeated seed within an experiment, or runs that recorded no
     samples' distances.
     """
-    if not published:
-        raise ValueError("no published results to draw")
-    groups: dict[str, list[dict]] = {}
     for p in published:
         if not p["finetune"].get("sampled"):
             raise ValueError(f"seed {p['seed']} of {p['command']!r} recorded no samples' distances")
-        groups.setdefault(_experiment_of(p["command"]), []).append(p)
-    for experiment, runs in groups.items():
-        seeds = [p["seed"] for p in runs]
-        if len(set(seeds)) < len(seeds):
-            raise ValueError(f"a seed is given twice for {experiment!r}: {seeds}")
-        runs.sort(key=lambda p: p["seed"])
-    options = {experiment: experiment.split() for experiment in groups}
-    common = [o for o in next(iter(options.values())) if all(o in opts for opts in options.values())]
+    groups, common = _experiments(published)
 
     fig = Figure(figsize=(5 * len(groups) + 0.5, 7), layout="constrained")
     axes = fig.subplots(2, len(groups), squeeze=False, sharey="row")
     summary = {}
-    for column, (experiment, runs) in enumerate(groups.items()):
+    for column, (name, runs) in enumerate(groups.items()):
         success = runs[0]["success_distance"]
-        name = " ".join(o for o in options[experiment] if o not in common) or "(no further options)"
         found: dict[str, dict[str, dict[int, int | None]]] = {}
         for row, (key, offset) in enumerate((("sampled", 1), ("curves", 0))):
             ax = axes[row, column]
@@ -533,35 +554,134 @@ def finetune_figure(published: list[dict]) -> tuple[Figure, dict]:
     return fig, {"success_distance": published[0]["success_distance"], "experiments": summary}
 
 
-#: the kinds that draw published JSON files: what draws them, what each file must be, the PNG's name
-FIGURES = {
+def network_figures(curve: list[float], success: float) -> dict:
+    """One start's network at the test positions over fine-tuning (a published curve: entry i is
+    the mean distance after i iterations, 0 the start): its best distance and the first
+    iteration that reached it, the mean over the whole curve (the start and every iteration),
+    the first iteration below the success distance (None: never), how many iterations were
+    below it, and whether the curve is flat (it never moved by 1 mm).
+
+    Examples:
+        >>> figures = network_figures([0.15, 0.04, 0.06, 0.04], success=0.05)
+        >>> figures["best"], figures["best_iteration"], figures["mean"]
+        (0.04, 1, 0.0725)
+        >>> figures["first_success"], figures["iterations_within"], figures["flat"]
+        (1, 2, False)
+    """
+    best = min(range(len(curve)), key=curve.__getitem__)
+    return {
+        "best": curve[best],
+        "best_iteration": best,
+        "mean": _round(float(np.mean(curve))),
+        "first_success": _first_below(curve, success, 0),
+        "iterations_within": sum(d < success for d in curve),
+        "flat": max(curve) - min(curve) < 1e-3,
+    }
+
+
+def _cell(figures: dict) -> str:
+    """A markdown cell, as RESULTS.md's fine-tuning tables have them: best (its iteration) / mean,
+    bold where it is below the success distance, then the first iteration that is and how many
+    are; "at the start" where fine-tuning never came nearer than zero-shot, "flat" where it never
+    moved.
+
+    Examples:
+        >>> _cell(network_figures([0.15, 0.04, 0.06, 0.03], success=0.05))
+        '**0.030 (3)** / 0.070, first 1, 2 its'
+        >>> _cell(network_figures([0.12, 0.13, 0.14], success=0.05))
+        '0.120 at the start / 0.130'
+        >>> _cell(network_figures([0.148, 0.1482, 0.1479], success=0.05))
+        '0.148 flat'
+    """
+    if figures["flat"]:
+        return f"{figures['best']:.3f} flat"
+    where = "at the start" if figures["best_iteration"] == 0 else f"({figures['best_iteration']})"
+    best = f"{figures['best']:.3f} {where}"
+    if figures["first_success"] is None:
+        return f"{best} / {figures['mean']:.3f}"
+    return (
+        f"**{best}** / {figures['mean']:.3f}, first {figures['first_success']}, "
+        f"{figures['iterations_within']} its"
+    )
+
+
+def finetune_table(published: list[dict]) -> tuple[str, dict]:
+    """The network's figures of published fine-tuning runs (see :func:`network_figures`), per
+    experiment (grouped as in :func:`finetune_figure`), start and seed, as markdown tables (a
+    row per seed, a column per start) and a summary: per experiment and start, each seed's
+    figures, the seeds whose network reached the success distance, and the mean of the seeds'
+    means. Raises ``ValueError`` for a repeated seed within an experiment.
+    """
+    groups, common = _experiments(published)
+    tables, summary = [], {}
+    for name, runs in groups.items():
+        starts = [s for s in START_COLORS if any(s in p["finetune"]["curves"] for p in runs)]
+        figures = {
+            start: {
+                p["seed"]: network_figures(p["finetune"]["curves"][start], p["success_distance"])
+                for p in runs
+                if start in p["finetune"]["curves"]
+            }
+            for start in starts
+        }
+        summary[name] = {
+            start: {
+                "seeds": by_seed,
+                "reached": [seed for seed, f in by_seed.items() if f["first_success"] is not None],
+                "mean_of_means": _round(float(np.mean([f["mean"] for f in by_seed.values()]))),
+            }
+            for start, by_seed in figures.items()
+        }
+        rows = [f"### {name}", "", "| seed | " + " | ".join(starts) + " |", "|---" * (len(starts) + 1) + "|"]
+        for p in runs:
+            cells = [_cell(figures[s][p["seed"]]) if p["seed"] in figures[s] else "" for s in starts]
+            rows.append(f"| {p['seed']} | " + " | ".join(cells) + " |")
+        reached = [f"{len(summary[name][s]['reached'])} of {len(figures[s])}" for s in starts]
+        rows.append("| reached | " + " | ".join(reached) + " |")
+        means = [f"{summary[name][s]['mean_of_means']:.3f}" for s in starts]
+        rows.append("| mean of means | " + " | ".join(means) + " |")
+        tables.append("\n".join(rows))
+    text = "\n\n".join([f"common options: {' '.join(common)}", *tables])
+    return text, {"success_distance": published[0]["success_distance"], "experiments": summary}
+
+
+#: the kinds that read published JSON files: what reads them, what each file must be, and the
+#: PNG's name for those that draw (the others print a markdown table)
+PUBLISHED = {
     "figure": (paper_figure, "a published zero-shot result", "{}_vs_paper.png"),
     "finetune-figure": (finetune_figure, "a published fine-tuning result", "{}.png"),
+    "finetune-table": (finetune_table, "a published fine-tuning result", None),
 }
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("kind", choices=["zero-shot", "lowo", "algorithms", *FIGURES])
+    parser.add_argument("kind", choices=["zero-shot", "lowo", "algorithms", *PUBLISHED])
     parser.add_argument(
         "paths",
         type=Path,
         nargs="+",
-        help="run directories (a sweep directory for lowo, JSON files for figure)",
+        help="run directories (a sweep directory for lowo, JSON files for the figures and the table)",
     )
-    parser.add_argument("--experiment", required=True, help="the name under docs/results/")
+    parser.add_argument("--experiment", help="the name under docs/ (all kinds but finetune-table)")
     parser.add_argument("--docs", type=Path, default=DOCS, help="the docs directory to write into")
     args = parser.parse_args()
-    if args.kind in FIGURES:
-        draw, what, name = FIGURES[args.kind]
+    if args.experiment is None and args.kind != "finetune-table":
+        parser.error(f"{args.kind} writes under {args.docs}: give its name with --experiment")
+    if args.kind in PUBLISHED:
+        read, what, name = PUBLISHED[args.kind]
         try:
-            fig, summary = draw([json.loads(path.read_text()) for path in args.paths])
+            drawn, summary = read([json.loads(path.read_text()) for path in args.paths])
         except KeyError as error:
             parser.error(f"{args.kind}: a file is not {what} (it has no {error})")
         except (OSError, ValueError) as error:
             parser.error(f"{args.kind}: {error}")
+        if name is None:
+            print(drawn)
+            print(json.dumps(summary))
+            return
         path = args.docs / name.format(args.experiment)
-        write_atomically(path, lambda tmp: fig.savefig(tmp, format="png", dpi=120))
+        write_atomically(path, lambda tmp: drawn.savefig(tmp, format="png", dpi=120))
         print(json.dumps({"figure": str(path), **summary}))
         return
     if args.kind == "zero-shot":

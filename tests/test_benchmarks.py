@@ -679,6 +679,56 @@ def test_finetune_figure_groups_seeds_into_experiments_and_finds_each_starts_fir
     assert (tmp_path / "x.png").read_bytes().startswith(b"\x89PNG")
 
 
+def test_finetune_table_gives_each_starts_network_figures_and_the_seeds_that_reached_success(tmp_path):
+    publish = load_benchmark("publish_results")
+    runs = [
+        # the network after 0, 1, 2, 3 iterations; exactly the success distance is not below it
+        published_finetuning(
+            1, {}, {"composed": [0.15, 0.05, 0.04, 0.06], "scratch_shaping": [0.15, 0.15, 0.1498, 0.15]}
+        ),
+        published_finetuning(0, {}, {"composed": [0.15, 0.05, 0.07, 0.06], "scratch_shaping": [0.15] * 4}),
+        published_finetuning(0, {}, {"composed": [0.15, 0.03, 0.03, 0.2]}, " eval.finetune_seed=100"),
+    ]
+    text, summary = publish.finetune_table(runs)
+    experiments = summary["experiments"]
+    default, redrawn = experiments["(no further options)"], experiments["eval.finetune_seed=100"]
+    composed = default["composed"]
+    assert list(composed["seeds"]) == [0, 1]  # sorted within the experiment
+    assert composed["seeds"][1] == {
+        "best": 0.04, "best_iteration": 2, "mean": 0.075, "first_success": 2, "iterations_within": 1,
+        "flat": False,
+    }
+    assert composed["seeds"][0]["first_success"] is None and composed["reached"] == [1]
+    assert composed["mean_of_means"] == pytest.approx((0.075 + 0.0825) / 2, abs=1e-4)
+    assert default["scratch_shaping"]["reached"] == [] and default["scratch_shaping"]["seeds"][1]["flat"]
+    assert redrawn["composed"]["seeds"][0]["best_iteration"] == 1  # the first of equal bests
+    assert list(redrawn) == ["composed"]  # only the starts that ran
+    # a markdown table per experiment: a row per seed, then how many reached and the mean of means
+    assert "| 1 | **0.040 (2)** / 0.075, first 2, 1 its | 0.150 flat |" in text
+    assert "| 0 | 0.050 (1) / 0.083 | 0.150 flat |" in text
+    assert "| reached | 1 of 2 | 0 of 2 |" in text and "| reached | 1 of 1 |" in text
+
+    with pytest.raises(ValueError, match="a seed is given twice"):
+        publish.finetune_table([runs[0], runs[0]])
+    paths = []
+    for i, run in enumerate(runs):
+        paths.append(tmp_path / f"{i}.json")
+        paths[-1].write_text(json.dumps(run))
+    done = run_script(BENCHMARKS / "publish_results.py", "finetune-table", *map(str, paths))
+    assert done.returncode == 0, done.stderr
+    assert "| reached | 1 of 2 | 0 of 2 |" in done.stdout
+    printed = json.loads(done.stdout.splitlines()[-1])
+    assert printed["experiments"]["(no further options)"]["composed"]["reached"] == [1]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["0.json", "1.json", "2.json"]  # it writes nothing
+    path = tmp_path / "not_finetuning.json"
+    path.write_text(json.dumps(published_run(0, [0.1] * 4)))
+    done = run_script(BENCHMARKS / "publish_results.py", "finetune-table", str(path))
+    assert done.returncode == 2 and "not a published fine-tuning result" in done.stderr, done.stderr
+    # the kinds that write under docs/ need the name to write it under
+    done = run_script(BENCHMARKS / "publish_results.py", "finetune-figure", str(paths[0]))
+    assert done.returncode == 2 and "give its name with --experiment" in done.stderr, done.stderr
+
+
 def test_imitation_capacity_takeover_hands_the_arm_from_the_network_to_the_controllers_at_its_step():
     """``takeover``: the network's mean actions before the step, then the controllers' mean
     actions at the states the network has led the arm to (DAgger's labels, acted out)."""
