@@ -191,11 +191,10 @@ def finetuning(results: dict) -> dict:
     and each iteration's GPS diagnostics (entry i: iteration i + 1)."""
     success = results["success_distance"]
     curves = {start: [_round(d) for d in curve] for start, curve in results["finetune"].items()}
-    # the first iteration whose mean test distance is below the success distance; None: never
-    reached = {start: [i for i, d in enumerate(curve) if d < success] for start, curve in curves.items()}
     return {
         "curves": curves,
-        "iterations_to_success": {start: its[0] if its else None for start, its in reached.items()},
+        # the first iteration whose mean test distance is below the success distance; None: never
+        "iterations_to_success": {start: _first_below(curve, success, 0) for start, curve in curves.items()},
         "sampled": {
             start: [_round(d) for d in curve] for start, curve in results.get("finetune_sampled", {}).items()
         }
