@@ -31,8 +31,9 @@ conditions and its network at the test positions, iteration by iteration, at eac
 ``finetune-table`` reads the same files, groups them the same way and writes nothing: it prints
 RESULTS.md's fine-tuning cells, a markdown table per experiment (a row per seed, a column per
 start: the network's best distance at the test positions (its iteration) / its mean over the
-curve, and the first iteration below the success distance and how many were), each start's
-count of seeds that reached it and the mean of the seeds' means; its last line is the same as JSON:
+curve, and the first iteration below the success distance and how many were; then its samples'
+first -> last iteration and first success), each start's count of seeds whose network reached
+it and the mean of the seeds' means; its last line is the same as JSON:
 
     python benchmarks/publish_results.py finetune-table docs/results/manipulation_*_elu_*_seed*_epyc.json
 """
@@ -579,10 +580,11 @@ def network_figures(curve: list[float], success: float) -> dict:
 
 
 def _cell(figures: dict) -> str:
-    """A markdown cell, as RESULTS.md's fine-tuning tables have them: best (its iteration) / mean,
-    bold where it is below the success distance, then the first iteration that is and how many
-    are; "at the start" where fine-tuning never came nearer than zero-shot, "flat" where it never
-    moved.
+    """A markdown cell, as RESULTS.md's fine-tuning tables have them: the network's best (its
+    iteration) / mean, bold where it is below the success distance, then the first iteration
+    that is and how many are; "at the start" where fine-tuning never came nearer than zero-shot,
+    "flat" where it never moved; then, where ``figures`` has them, the samples' (see
+    :func:`_samples_cell`) after a semicolon.
 
     Examples:
         >>> _cell(network_figures([0.15, 0.04, 0.06, 0.03], success=0.05))
@@ -591,38 +593,66 @@ def _cell(figures: dict) -> str:
         '0.120 at the start / 0.130'
         >>> _cell(network_figures([0.148, 0.1482, 0.1479], success=0.05))
         '0.148 flat'
+        >>> figures = network_figures([0.15, 0.04, 0.06, 0.03], success=0.05)
+        >>> _cell({**figures, "samples": samples_figures([0.16, 0.04, 0.03], success=0.05)})
+        '**0.030 (3)** / 0.070, first 1, 2 its; 0.160 -> 0.030, first 2'
     """
-    if figures["flat"]:
-        return f"{figures['best']:.3f} flat"
     where = "at the start" if figures["best_iteration"] == 0 else f"({figures['best_iteration']})"
     best = f"{figures['best']:.3f} {where}"
-    if figures["first_success"] is None:
-        return f"{best} / {figures['mean']:.3f}"
-    return (
-        f"**{best}** / {figures['mean']:.3f}, first {figures['first_success']}, "
-        f"{figures['iterations_within']} its"
-    )
+    if figures["flat"]:
+        cell = f"{figures['best']:.3f} flat"
+    elif figures["first_success"] is None:
+        cell = f"{best} / {figures['mean']:.3f}"
+    else:
+        cell = (
+            f"**{best}** / {figures['mean']:.3f}, first {figures['first_success']}, "
+            f"{figures['iterations_within']} its"
+        )
+    return f"{cell}; {_samples_cell(figures['samples'])}" if "samples" in figures else cell
+
+
+def samples_figures(sampled: list[float], success: float) -> dict:
+    """One start's samples over fine-tuning (a published ``sampled`` curve: entry i is the mean
+    distance of iteration i + 1's samples on the training conditions): the first and the last
+    iteration's, and the first iteration below the success distance (None: never).
+
+    Examples:
+        >>> samples_figures([0.16, 0.07, 0.04, 0.03], success=0.05)
+        {'first': 0.16, 'last': 0.03, 'first_success': 3}
+    """
+    return {"first": sampled[0], "last": sampled[-1], "first_success": _first_below(sampled, success, 1)}
+
+
+def _samples_cell(figures: dict) -> str:
+    """The samples' markdown cell, as RESULTS.md has it: first -> last iteration, first success.
+
+    Examples:
+        >>> _samples_cell(samples_figures([0.16, 0.07, 0.04, 0.03], success=0.05))
+        '0.160 -> 0.030, first 3'
+    """
+    cell = f"{figures['first']:.3f} -> {figures['last']:.3f}"
+    return cell if figures["first_success"] is None else f"{cell}, first {figures['first_success']}"
 
 
 def finetune_table(published: list[dict]) -> tuple[str, dict]:
-    """The network's figures of published fine-tuning runs (see :func:`network_figures`), per
+    """The network's figures of published fine-tuning runs (see :func:`network_figures`), and
+    where a run recorded them its samples' (:func:`samples_figures`, under ``"samples"``), per
     experiment (grouped as in :func:`finetune_figure`), start and seed, as markdown tables (a
-    row per seed, a column per start) and a summary: per experiment and start, each seed's
-    figures, the seeds whose network reached the success distance, and the mean of the seeds'
-    means. Raises ``ValueError`` for a repeated seed within an experiment.
+    row per seed, a column per start: the network's cell, then the samples') and a summary: per
+    experiment and start, each seed's figures, the seeds whose network reached the success
+    distance, and the mean of the seeds' means. Raises ``ValueError`` for a repeated seed
+    within an experiment.
     """
     groups, common = _experiments(published)
     tables, summary = [], {}
     for name, runs in groups.items():
         starts = [s for s in START_COLORS if any(s in p["finetune"]["curves"] for p in runs)]
-        figures = {
-            start: {
-                p["seed"]: network_figures(p["finetune"]["curves"][start], p["success_distance"])
-                for p in runs
-                if start in p["finetune"]["curves"]
-            }
-            for start in starts
-        }
+        figures: dict[str, dict[int, dict]] = {start: {} for start in starts}
+        for p, start in ((p, s) for p in runs for s in starts if s in p["finetune"]["curves"]):
+            seed, success = p["seed"], p["success_distance"]
+            figures[start][seed] = network_figures(p["finetune"]["curves"][start], success)
+            if start in (p["finetune"].get("sampled") or {}):
+                figures[start][seed]["samples"] = samples_figures(p["finetune"]["sampled"][start], success)
         summary[name] = {
             start: {
                 "seeds": by_seed,

@@ -682,9 +682,12 @@ def test_finetune_figure_groups_seeds_into_experiments_and_finds_each_starts_fir
 def test_finetune_table_gives_each_starts_network_figures_and_the_seeds_that_reached_success(tmp_path):
     publish = load_benchmark("publish_results")
     runs = [
-        # the network after 0, 1, 2, 3 iterations; exactly the success distance is not below it
+        # the network after 0, 1, 2, 3 iterations (the samples of iterations 1, 2, 3); exactly the
+        # success distance is not below it
         published_finetuning(
-            1, {}, {"composed": [0.15, 0.05, 0.04, 0.06], "scratch_shaping": [0.15, 0.15, 0.1498, 0.15]}
+            1,
+            {"composed": [0.12, 0.05, 0.04]},
+            {"composed": [0.15, 0.05, 0.04, 0.06], "scratch_shaping": [0.15, 0.15, 0.1498, 0.15]},
         ),
         published_finetuning(0, {}, {"composed": [0.15, 0.05, 0.07, 0.06], "scratch_shaping": [0.15] * 4}),
         published_finetuning(0, {}, {"composed": [0.15, 0.03, 0.03, 0.2]}, " eval.finetune_seed=100"),
@@ -696,15 +699,16 @@ def test_finetune_table_gives_each_starts_network_figures_and_the_seeds_that_rea
     assert list(composed["seeds"]) == [0, 1]  # sorted within the experiment
     assert composed["seeds"][1] == {
         "best": 0.04, "best_iteration": 2, "mean": 0.075, "first_success": 2, "iterations_within": 1,
-        "flat": False,
+        "flat": False, "samples": {"first": 0.12, "last": 0.04, "first_success": 3},
     }
     assert composed["seeds"][0]["first_success"] is None and composed["reached"] == [1]
     assert composed["mean_of_means"] == pytest.approx((0.075 + 0.0825) / 2, abs=1e-4)
     assert default["scratch_shaping"]["reached"] == [] and default["scratch_shaping"]["seeds"][1]["flat"]
+    assert "samples" not in default["scratch_shaping"]["seeds"][1]  # only where the run recorded them
     assert redrawn["composed"]["seeds"][0]["best_iteration"] == 1  # the first of equal bests
     assert list(redrawn) == ["composed"]  # only the starts that ran
     # a markdown table per experiment: a row per seed, then how many reached and the mean of means
-    assert "| 1 | **0.040 (2)** / 0.075, first 2, 1 its | 0.150 flat |" in text
+    assert "| 1 | **0.040 (2)** / 0.075, first 2, 1 its; 0.120 -> 0.040, first 3 | 0.150 flat |" in text
     assert "| 0 | 0.050 (1) / 0.083 | 0.150 flat |" in text
     assert "| reached | 1 of 2 | 0 of 2 |" in text and "| reached | 1 of 1 |" in text
 
