@@ -33,7 +33,8 @@ RESULTS.md's fine-tuning cells, a markdown table per experiment (a row per seed,
 start: the network's best distance at the test positions (its iteration) / its mean over the
 curve, and the first iteration below the success distance and how many were; then its samples'
 first -> last iteration and first success), each start's count of seeds whose network reached
-it and the mean of the seeds' means; its last line is the same as JSON:
+it and the mean of the seeds' means, and with several experiments (say, draws of one setting)
+in how many of them each seed reached it; its last line is the same as JSON:
 
     python benchmarks/publish_results.py finetune-table docs/results/manipulation_*_elu_*_seed*_epyc.json
 """
@@ -640,7 +641,8 @@ def finetune_table(published: list[dict]) -> tuple[str, dict]:
     experiment (grouped as in :func:`finetune_figure`), start and seed, as markdown tables (a
     row per seed, a column per start: the network's cell, then the samples') and a summary: per
     experiment and start, each seed's figures, the seeds whose network reached the success
-    distance, and the mean of the seeds' means. Raises ``ValueError`` for a repeated seed
+    distance, and the mean of the seeds' means; with several experiments, also per start and
+    seed how many of them reached it (``"across"``). Raises ``ValueError`` for a repeated seed
     within an experiment.
     """
     groups, common = _experiments(published)
@@ -670,8 +672,39 @@ def finetune_table(published: list[dict]) -> tuple[str, dict]:
         means = [f"{summary[name][s]['mean_of_means']:.3f}" for s in starts]
         rows.append("| mean of means | " + " | ".join(means) + " |")
         tables.append("\n".join(rows))
-    text = "\n\n".join([f"common options: {' '.join(common)}", *tables])
-    return text, {"success_distance": published[0]["success_distance"], "experiments": summary}
+    out = {"success_distance": published[0]["success_distance"], "experiments": summary}
+    if len(summary) > 1:
+        across, table = _across_experiments(summary)
+        out["across"] = across
+        tables.append(table)
+    return "\n\n".join([f"common options: {' '.join(common)}", *tables]), out
+
+
+def _across_experiments(summary: dict) -> tuple[dict, str]:
+    """Per start and seed, in how many of the experiments that ran it the network reached the
+    success distance (say, several draws of one setting), and over all of them: a summary and
+    its markdown table."""
+    across: dict[str, dict] = {}
+    for experiment in summary.values():
+        for start, figures in experiment.items():
+            seeds = across.setdefault(start, {"seeds": {}})["seeds"]
+            for seed in figures["seeds"]:
+                reached, ran = seeds.get(seed, (0, 0))
+                seeds[seed] = (reached + (seed in figures["reached"]), ran + 1)
+    for counts in across.values():
+        counts["seeds"] = dict(sorted(counts["seeds"].items()))
+        counts["reached"] = sum(r for r, _ in counts["seeds"].values())
+        counts["runs"] = sum(n for _, n in counts["seeds"].values())
+    starts = list(across)
+    seeds = sorted({seed for counts in across.values() for seed in counts["seeds"]})
+    rows = ["### across the experiments: runs that reached it", "", "| seed | " + " | ".join(starts) + " |"]
+    rows.append("|---" * (len(starts) + 1) + "|")
+    for seed in seeds:
+        counts = [across[s]["seeds"].get(seed) for s in starts]
+        rows.append(f"| {seed} | " + " | ".join("{} of {}".format(*c) if c else "" for c in counts) + " |")
+    totals = [f"{across[s]['reached']} of {across[s]['runs']}" for s in starts]
+    rows.append("| all | " + " | ".join(totals) + " |")
+    return across, "\n".join(rows)
 
 
 #: the kinds that read published JSON files: what reads them, what each file must be, and the

@@ -711,6 +711,12 @@ def test_finetune_table_gives_each_starts_network_figures_and_the_seeds_that_rea
     assert "| 1 | **0.040 (2)** / 0.075, first 2, 1 its; 0.120 -> 0.040, first 3 | 0.150 flat |" in text
     assert "| 0 | 0.050 (1) / 0.083 | 0.150 flat |" in text
     assert "| reached | 1 of 2 | 0 of 2 |" in text and "| reached | 1 of 1 |" in text
+    # several experiments (say, draws of one setting): per start and seed, how many reached it
+    across = summary["across"]
+    assert across["composed"] == {"seeds": {0: (1, 2), 1: (1, 1)}, "reached": 2, "runs": 3}
+    assert across["scratch_shaping"]["reached"] == 0 and across["scratch_shaping"]["runs"] == 2
+    assert "| 0 | 1 of 2 | 0 of 1 |" in text and "| all | 2 of 3 | 0 of 2 |" in text
+    assert "across" not in publish.finetune_table(runs[:2])[1]  # one experiment: nothing to add up
 
     with pytest.raises(ValueError, match="a seed is given twice"):
         publish.finetune_table([runs[0], runs[0]])
