@@ -650,11 +650,12 @@ def finetune_table(published: list[dict]) -> tuple[str, dict]:
     for name, runs in groups.items():
         starts = [s for s in START_COLORS if any(s in p["finetune"]["curves"] for p in runs)]
         figures: dict[str, dict[int, dict]] = {start: {} for start in starts}
-        for p, start in ((p, s) for p in runs for s in starts if s in p["finetune"]["curves"]):
-            seed, success = p["seed"], p["success_distance"]
-            figures[start][seed] = network_figures(p["finetune"]["curves"][start], success)
-            if start in (p["finetune"].get("sampled") or {}):
-                figures[start][seed]["samples"] = samples_figures(p["finetune"]["sampled"][start], success)
+        for p in runs:
+            sampled, success = p["finetune"].get("sampled") or {}, p["success_distance"]
+            for start, curve in p["finetune"]["curves"].items():
+                figures[start][p["seed"]] = network_figures(curve, success)
+                if start in sampled:
+                    figures[start][p["seed"]]["samples"] = samples_figures(sampled[start], success)
         summary[name] = {
             start: {
                 "seeds": by_seed,
