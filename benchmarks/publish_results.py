@@ -478,6 +478,38 @@ def _first_below(curve: list[float], bound: float, offset: int) -> int | None:
     return next((i + offset for i, d in enumerate(curve) if d < bound), None)
 
 
+def first_iterations(published: list[dict], iterations: int) -> list[dict]:
+    """Published fine-tuning runs cut to their first ``iterations`` iterations: each start's
+    network curve (and its curve on the training conditions) to its first ``iterations + 1``
+    points, the samples' to their first ``iterations``; the figures of a shorter budget, read
+    from longer runs. Fine-tuning does not look ahead, so a run of 100 iterations repeats the
+    first 50 of a run of 50 with the same command otherwise. Raises ``ValueError`` where a run
+    has fewer iterations, naming its seed.
+
+    Examples:
+        >>> run = {"seed": 0, "finetune": {"curves": {"composed": [0.15, 0.1, 0.04]},
+        ...                                "sampled": {"composed": [0.12, 0.03]}}}
+        >>> cut = first_iterations([run], 1)[0]["finetune"]
+        >>> cut["curves"], cut["sampled"]
+        ({'composed': [0.15, 0.1]}, {'composed': [0.12]})
+    """
+    if iterations < 1:
+        raise ValueError(f"--iterations must be at least 1, got {iterations}")
+    cut = []
+    for p in published:
+        finetune = dict(p["finetune"])
+        for start, curve in finetune["curves"].items():
+            if len(curve) <= iterations:
+                ran = len(curve) - 1
+                raise ValueError(f"seed {p['seed']}'s {start} ran {ran} iterations, fewer than {iterations}")
+        lengths = {"curves": iterations + 1, "training_conditions": iterations + 1, "sampled": iterations}
+        for key, points in lengths.items():
+            if finetune.get(key):
+                finetune[key] = {start: curve[:points] for start, curve in finetune[key].items()}
+        cut.append({**p, "finetune": finetune})
+    return cut
+
+
 def _experiments(published: list[dict]) -> tuple[dict[str, list[dict]], list[str]]:
     """Published runs grouped into experiments by their command less the seed, each sorted by
     seed and named by the options that set it apart from the others ("(no further options)"
@@ -728,13 +760,21 @@ def main() -> None:
     )
     parser.add_argument("--experiment", help="the name under docs/ (all kinds but finetune-table)")
     parser.add_argument("--docs", type=Path, default=DOCS, help="the docs directory to write into")
+    parser.add_argument(
+        "--iterations", type=int, help="fine-tuning kinds: each run's first N iterations (a shorter budget)"
+    )
     args = parser.parse_args()
     if args.experiment is None and args.kind != "finetune-table":
         parser.error(f"{args.kind} writes under {args.docs}: give its name with --experiment")
+    if args.iterations is not None and not args.kind.startswith("finetune"):
+        parser.error(f"--iterations cuts fine-tuning runs; {args.kind} reads none")
     if args.kind in PUBLISHED:
         read, what, name = PUBLISHED[args.kind]
         try:
-            drawn, summary = read([json.loads(path.read_text()) for path in args.paths])
+            published = [json.loads(path.read_text()) for path in args.paths]
+            if args.iterations is not None:
+                published = first_iterations(published, args.iterations)
+            drawn, summary = read(published)
         except KeyError as error:
             parser.error(f"{args.kind}: a file is not {what} (it has no {error})")
         except (OSError, ValueError) as error:

@@ -739,6 +739,41 @@ def test_finetune_table_gives_each_starts_network_figures_and_the_seeds_that_rea
     assert done.returncode == 2 and "give its name with --experiment" in done.stderr, done.stderr
 
 
+def test_finetune_table_reads_a_shorter_budget_from_longer_runs(tmp_path):
+    """``--iterations N``: each run's first N iterations, so a run of 100 gives the figures of 50."""
+    publish = load_benchmark("publish_results")
+    run = published_finetuning(
+        0,
+        {"composed": [0.12, 0.06, 0.04]},
+        {"composed": [0.15, 0.06, 0.07, 0.04], "scratch_shaping": [0.15, 0.14, 0.13, 0.03]},
+    )
+    run["finetune"]["training_conditions"] = {"composed": [0.2, 0.1, 0.05, 0.01]}
+    (cut,) = publish.first_iterations([run], 2)
+    curves = {"composed": [0.15, 0.06, 0.07], "scratch_shaping": [0.15, 0.14, 0.13]}
+    assert cut["finetune"]["curves"] == curves
+    assert cut["finetune"]["sampled"] == {"composed": [0.12, 0.06]}
+    assert cut["finetune"]["training_conditions"] == {"composed": [0.2, 0.1, 0.05]}
+    assert run["finetune"]["curves"]["composed"] == [0.15, 0.06, 0.07, 0.04]  # the run is left as it was
+    composed = publish.finetune_table([cut])[1]["experiments"]["(no further options)"]["composed"]
+    assert composed["reached"] == [] and composed["seeds"][0]["samples"]["first_success"] is None
+    full = publish.finetune_table([run])[1]["experiments"]["(no further options)"]
+    assert full["composed"]["reached"] == [0] and full["scratch_shaping"]["seeds"][0]["first_success"] == 3
+    with pytest.raises(ValueError, match="seed 0's composed ran 3 iterations, fewer than 4"):
+        publish.first_iterations([run], 4)
+
+    path = tmp_path / "run.json"
+    path.write_text(json.dumps(run))
+    done = run_script(BENCHMARKS / "publish_results.py", "finetune-table", "--iterations", "2", str(path))
+    assert done.returncode == 0, done.stderr
+    assert "| 0 | 0.060 (1) / 0.093; 0.120 -> 0.060 | 0.130 (2) / 0.140 |" in done.stdout
+    for bad, message in (("4", "fewer than 4"), ("0", "at least 1")):
+        done = run_script(BENCHMARKS / "publish_results.py", "finetune-table", "--iterations", bad, str(path))
+        assert done.returncode == 2 and message in done.stderr, done.stderr
+    lowo = ("lowo", str(tmp_path), "--iterations", "2", "--experiment", "y")
+    done = run_script(BENCHMARKS / "publish_results.py", *lowo)
+    assert done.returncode == 2 and "lowo reads none" in done.stderr, done.stderr
+
+
 def test_imitation_capacity_takeover_hands_the_arm_from_the_network_to_the_controllers_at_its_step():
     """``takeover``: the network's mean actions before the step, then the controllers' mean
     actions at the states the network has led the arm to (DAgger's labels, acted out)."""
