@@ -479,33 +479,49 @@ def _first_below(curve: list[float], bound: float, offset: int) -> int | None:
 
 
 def first_iterations(published: list[dict], iterations: int) -> list[dict]:
-    """Published fine-tuning runs cut to their first ``iterations`` iterations: each start's
-    network curve (and its curve on the training conditions) to its first ``iterations + 1``
-    points, the samples' to their first ``iterations``; the figures of a shorter budget, read
-    from longer runs. Fine-tuning does not look ahead, so a run of 100 iterations repeats the
-    first 50 of a run of 50 with the same command otherwise. Raises ``ValueError`` where a run
-    has fewer iterations, naming its seed.
+    """Published fine-tuning runs cut to their first ``iterations`` iterations, as a run of that
+    many would have published them: each start's network curve (and its curve on the training
+    conditions) to its first ``iterations + 1`` points, its samples' curve and diagnostics to
+    their first ``iterations``, its iterations to success kept only where within them, and its
+    samples drawn scaled to them. Fine-tuning does not look ahead, so a run of 100 iterations
+    repeats the first 50 of a run of 50 with the same command otherwise: the figures of a
+    shorter budget, read from longer runs. Raises ``ValueError`` where a run has fewer
+    iterations, naming its seed.
 
     Examples:
         >>> run = {"seed": 0, "finetune": {"curves": {"composed": [0.15, 0.1, 0.04]},
-        ...                                "sampled": {"composed": [0.12, 0.03]}}}
+        ...                                "sampled": {"composed": [0.12, 0.03]},
+        ...                                "iterations_to_success": {"composed": 2},
+        ...                                "samples": {"composed": {"trajectories": 20, "env_steps": 400}}}}
         >>> cut = first_iterations([run], 1)[0]["finetune"]
-        >>> cut["curves"], cut["sampled"]
-        ({'composed': [0.15, 0.1]}, {'composed': [0.12]})
+        >>> cut["curves"], cut["sampled"], cut["iterations_to_success"]
+        ({'composed': [0.15, 0.1]}, {'composed': [0.12]}, {'composed': None})
+        >>> cut["samples"]
+        {'composed': {'trajectories': 10, 'env_steps': 200}}
     """
     if iterations < 1:
         raise ValueError(f"--iterations must be at least 1, got {iterations}")
     cut = []
     for p in published:
         finetune = dict(p["finetune"])
-        for start, curve in finetune["curves"].items():
-            if len(curve) <= iterations:
-                ran = len(curve) - 1
-                raise ValueError(f"seed {p['seed']}'s {start} ran {ran} iterations, fewer than {iterations}")
-        lengths = {"curves": iterations + 1, "training_conditions": iterations + 1, "sampled": iterations}
-        for key, points in lengths.items():
+        ran = {start: len(curve) - 1 for start, curve in finetune["curves"].items()}
+        for start, n in ran.items():
+            if n < iterations:
+                raise ValueError(f"seed {p['seed']}'s {start} ran {n} iterations, fewer than {iterations}")
+        lengths = {"curves": 1, "training_conditions": 1, "sampled": 0, "diagnostics": 0}
+        for key, extra in lengths.items():
             if finetune.get(key):
-                finetune[key] = {start: curve[:points] for start, curve in finetune[key].items()}
+                finetune[key] = {start: curve[: iterations + extra] for start, curve in finetune[key].items()}
+        if "iterations_to_success" in finetune:
+            finetune["iterations_to_success"] = {
+                start: None if n is None or n > iterations else n
+                for start, n in finetune["iterations_to_success"].items()
+            }
+        if "samples" in finetune:
+            finetune["samples"] = {
+                start: {kind: count * iterations // ran[start] for kind, count in drawn.items()}
+                for start, drawn in finetune["samples"].items()
+            }
         cut.append({**p, "finetune": finetune})
     return cut
 

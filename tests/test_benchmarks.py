@@ -748,7 +748,12 @@ def test_finetune_table_reads_a_shorter_budget_from_longer_runs(tmp_path):
         {"composed": [0.15, 0.06, 0.07, 0.04], "scratch_shaping": [0.15, 0.14, 0.13, 0.03]},
     )
     run["finetune"]["training_conditions"] = {"composed": [0.2, 0.1, 0.05, 0.01]}
+    run["finetune"]["iterations_to_success"] = {"composed": 3, "scratch_shaping": 3}
+    run["finetune"]["samples"] = {"composed": {"trajectories": 30, "env_steps": 600}}
     (cut,) = publish.first_iterations([run], 2)
+    assert cut["finetune"]["iterations_to_success"] == {"composed": None, "scratch_shaping": None}
+    assert cut["finetune"]["samples"] == {"composed": {"trajectories": 20, "env_steps": 400}}
+    assert publish.first_iterations([run], 3)[0]["finetune"]["iterations_to_success"]["composed"] == 3
     curves = {"composed": [0.15, 0.06, 0.07], "scratch_shaping": [0.15, 0.14, 0.13]}
     assert cut["finetune"]["curves"] == curves
     assert cut["finetune"]["sampled"] == {"composed": [0.12, 0.06]}
