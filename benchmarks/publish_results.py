@@ -37,6 +37,9 @@ it and the mean of the seeds' means, and with several experiments (say, draws of
 in how many of them each seed reached it; its last line is the same as JSON:
 
     python benchmarks/publish_results.py finetune-table docs/results/manipulation_*_elu_*_seed*_epyc.json
+
+With ``--iterations N`` both fine-tuning kinds read each run's first N iterations only, the
+figures of a shorter budget from longer runs (:func:`first_iterations`).
 """
 
 from __future__ import annotations
@@ -489,10 +492,11 @@ def first_iterations(published: list[dict], iterations: int) -> list[dict]:
     iterations, naming its seed.
 
     Examples:
-        >>> run = {"seed": 0, "finetune": {"curves": {"composed": [0.15, 0.1, 0.04]},
-        ...                                "sampled": {"composed": [0.12, 0.03]},
-        ...                                "iterations_to_success": {"composed": 2},
-        ...                                "samples": {"composed": {"trajectories": 20, "env_steps": 400}}}}
+        >>> run = {"seed": 0, "success_distance": 0.05,
+        ...        "finetune": {"curves": {"composed": [0.15, 0.1, 0.04]},
+        ...                     "sampled": {"composed": [0.12, 0.03]},
+        ...                     "iterations_to_success": {"composed": 2},
+        ...                     "samples": {"composed": {"trajectories": 20, "env_steps": 400}}}}
         >>> cut = first_iterations([run], 1)[0]["finetune"]
         >>> cut["curves"], cut["sampled"], cut["iterations_to_success"]
         ({'composed': [0.15, 0.1]}, {'composed': [0.12]}, {'composed': None})
@@ -512,10 +516,10 @@ def first_iterations(published: list[dict], iterations: int) -> list[dict]:
         for key, extra in lengths.items():
             if finetune.get(key):
                 finetune[key] = {start: curve[: iterations + extra] for start, curve in finetune[key].items()}
-        if "iterations_to_success" in finetune:
+        if "iterations_to_success" in finetune:  # as finetuning() has it, from the cut curves
+            success = p["success_distance"]
             finetune["iterations_to_success"] = {
-                start: None if n is None or n > iterations else n
-                for start, n in finetune["iterations_to_success"].items()
+                start: _first_below(curve, success, 0) for start, curve in finetune["curves"].items()
             }
         if "samples" in finetune:
             finetune["samples"] = {
