@@ -198,8 +198,7 @@ def finetuning(results: dict) -> dict:
     curves = {start: [_round(d) for d in curve] for start, curve in results["finetune"].items()}
     return {
         "curves": curves,
-        # the first iteration whose mean test distance is below the success distance; None: never
-        "iterations_to_success": {start: _first_below(curve, success, 0) for start, curve in curves.items()},
+        "iterations_to_success": _iterations_to_success(curves, success),
         "sampled": {
             start: [_round(d) for d in curve] for start, curve in results.get("finetune_sampled", {}).items()
         }
@@ -481,12 +480,18 @@ def _first_below(curve: list[float], bound: float, offset: int) -> int | None:
     return next((i + offset for i, d in enumerate(curve) if d < bound), None)
 
 
+def _iterations_to_success(curves: dict[str, list[float]], success: float) -> dict[str, int | None]:
+    """Per start, the first iteration whose mean test distance (``curves``, entry 0: before any)
+    is below ``success``; None: never. The published ``iterations_to_success``."""
+    return {start: _first_below(curve, success, 0) for start, curve in curves.items()}
+
+
 def first_iterations(published: list[dict], iterations: int) -> list[dict]:
     """Published fine-tuning runs cut to their first ``iterations`` iterations, as a run of that
     many would have published them: each start's network curve (and its curve on the training
     conditions) to its first ``iterations + 1`` points, its samples' curve and diagnostics to
-    their first ``iterations``, its iterations to success kept only where within them, and its
-    samples drawn scaled to them. Fine-tuning does not look ahead, so a run of 100 iterations
+    their first ``iterations``, its iterations to success recomputed from the cut curves, and
+    its samples drawn scaled to them. Fine-tuning does not look ahead, so a run of 100 iterations
     repeats the first 50 of a run of 50 with the same command otherwise: the figures of a
     shorter budget, read from longer runs. Raises ``ValueError`` where a run has fewer
     iterations, naming its seed.
@@ -516,11 +521,9 @@ def first_iterations(published: list[dict], iterations: int) -> list[dict]:
         for key, extra in lengths.items():
             if finetune.get(key):
                 finetune[key] = {start: curve[: iterations + extra] for start, curve in finetune[key].items()}
-        if "iterations_to_success" in finetune:  # as finetuning() has it, from the cut curves
-            success = p["success_distance"]
-            finetune["iterations_to_success"] = {
-                start: _first_below(curve, success, 0) for start, curve in finetune["curves"].items()
-            }
+        if "iterations_to_success" in finetune:
+            curves, success = finetune["curves"], p["success_distance"]
+            finetune["iterations_to_success"] = _iterations_to_success(curves, success)
         if "samples" in finetune:
             finetune["samples"] = {
                 start: {kind: count * iterations // ran[start] for kind, count in drawn.items()}
