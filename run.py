@@ -77,6 +77,7 @@ NEWER_OPTIONS = {
     "gps.pi2_step_smoothing": 0.0,
     "gps.pi2_policy_feedback": False,
     "gps.feedback_weight": 0.0,
+    "gps.s_step_precision": "controllers",
 }
 #: Limits on failure, not shapes of training: a run they stopped resumes with a looser one.
 NOT_IDENTITY = ("gps.max_held_iterations",)

@@ -129,6 +129,9 @@ def test_overrides_reach_the_library_configs():
     sobolev = composed("universe=tiny", "algo=mdgps", "eval.finetune_feedback_weight=10")
     assert sobolev.finetune_gps_config().feedback_weight == 10.0
     assert sobolev.gps_config().feedback_weight == 0.0
+    evened = composed("universe=tiny", "eval.finetune_s_step_precision=normalized")
+    assert evened.finetune_gps_config().s_step_precision == "normalized"
+    assert evened.gps_config().s_step_precision == "controllers"
     redrawn = composed("universe=tiny", "seed=3", "eval.finetune_seed=7")
     assert redrawn.finetune_gps_config().seed == 7
     assert redrawn.gps_config().seed == 3
@@ -234,6 +237,11 @@ def test_literal_choices_and_values_no_type_rules_out_fail_with_the_key():
             "eval.finetune_feedback_weight",
             1.0,
             r"finetune_feedback_weight=1\.0: gps\.feedback_weight .* positive only with algo=mdgps",
+        ),
+        (
+            "eval.finetune_s_step_precision",
+            "even",
+            r"finetune_s_step_precision=even: gps\.s_step_precision must be one of controllers, normalized",
         ),
     ]:
         run = RunConfig(universe="tiny")

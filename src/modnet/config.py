@@ -237,6 +237,9 @@ class EvalConfig:
             Jacobian onto the controllers' gains with this weight (:class:`~modnet.gps.GPSConfig`'s
             ``feedback_weight``, MDGPS only); None: ``gps.feedback_weight``. Not part of a
             checkpoint's identity.
+        finetune_s_step_precision: how every fine-tuning start's S-step weighs each condition
+            and step (:class:`~modnet.gps.GPSConfig`'s ``s_step_precision``: "controllers" or
+            "normalized"); None: ``gps.s_step_precision``. Not part of a checkpoint's identity.
         finetune_seed: the seed of every fine-tuning start's noise, batches and dropout, and of
             the scratch starts' weights (:class:`~modnet.gps.GPSConfig`'s ``seed``); None:
             ``gps.seed``. The bank, the held-out world's scenes and the zero-shot table stay
@@ -273,6 +276,7 @@ class EvalConfig:
     finetune_pi2_step_smoothing: float | None = None
     finetune_pi2_policy_feedback: bool | None = None
     finetune_feedback_weight: float | None = None
+    finetune_s_step_precision: str | None = None
     finetune_seed: int | None = None
 
 
@@ -297,6 +301,7 @@ FINETUNE_GPS_OVERRIDES = (
     "pi2_step_smoothing",
     "pi2_policy_feedback",
     "feedback_weight",
+    "s_step_precision",
     "seed",
 )
 

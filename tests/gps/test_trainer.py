@@ -1022,3 +1022,33 @@ def test_the_first_controllers_explore_with_init_variance_and_the_first_samples_
     assert 1.8 < spreads[4.0] / spreads[1.0] < 2.2, spreads  # the noise's std doubles
     with pytest.raises(ValueError, match="init_variance must be positive"):
         GPSConfig(init_variance=0.0)
+
+
+def test_a_normalized_s_step_weighs_every_step_alike_and_keeps_the_controllers_spread():
+    """``s_step_precision="normalized"``: where the controllers are a million times surer at a
+    tenth of the (condition, step) pairs than at the rest, as PI2 can leave them late in
+    fine-tuning, the S-step's precision has mean diagonal 1 at every sample (the
+    controllers' own spans the million), ``precision_top_share`` reports the concentration
+    either way, and the policy's fitted spread is the controllers' in both."""
+    weighed, spreads = {}, {}
+    for weighing in ("controllers", "normalized"):
+        trainer = trainer_for(GRID[:1], algo="mdgps", c_step="pi2", s_step_precision=weighing)
+        first = trainer.step()["three_link/reach_red"]
+        assert first["action_gap_applied"] <= first["action_gap"]
+        assert 0.1 <= first["precision_top_share"] < 0.5  # one PI2 step: nearly even
+        (state,) = trainer.states.values()
+        gains = state.controller.gains
+        cov = gains.cov.clone()
+        cov[:, :2] *= 1e-6  # 2 of 20 steps at every condition
+        state.controller.set_gains(gains.from_covariance(gains.K, gains.k, cov))
+        data = trainer._controller_targets(state)
+        weighed[weighing] = data["precision"].diagonal(dim1=-2, dim2=-1).mean(-1)
+        trainer._s_step(1, {state.name: data})
+        assert state.diagnostics["precision_top_share"] > 0.9999
+        module = list(trainer.bank.parts(trainer.bank.world(state.name)).values())[-1]
+        spreads[weighing] = module.log_std.detach().exp()
+    assert weighed["controllers"].max() / weighed["controllers"].min() > 1e5
+    torch.testing.assert_close(weighed["normalized"], torch.ones_like(weighed["normalized"]))
+    torch.testing.assert_close(spreads["normalized"], spreads["controllers"], rtol=1e-5, atol=0)
+    with pytest.raises(ValueError, match="gps.s_step_precision must be one of controllers, normalized"):
+        GPSConfig(s_step_precision="even")

@@ -25,7 +25,7 @@ Examples:
     >>> trainer = GPSTrainer(bank, worlds, GPSConfig(samples_per_condition=2, horizon=10, sgd_steps=5))
     >>> diagnostics = trainer.step()
     >>> sorted(diagnostics["three_link/reach_red"])[:3]
-    ['action_gap', 'distance', 'eta']
+    ['action_gap', 'action_gap_applied', 'distance']
 """
 
 from __future__ import annotations
@@ -97,6 +97,8 @@ C_STEPS = ("lqr", "pi2", "pilqr")
 RELABELLINGS = ("off", "sampled", "mean")
 #: what ``GPSConfig.train_modules`` may name: every module, or those of one factor of a modular bank
 TRAIN_MODULES = ("all", "task", "robot")
+#: ``GPSConfig.s_step_precision``: the controllers' precision as it is, or scaled to one per step
+S_STEP_PRECISIONS = ("controllers", "normalized")
 
 
 def check_train_modules(train_modules: str, policy: str, key: str = "gps.train_modules") -> None:
@@ -265,6 +267,15 @@ class GPSConfig:
     #: is left to chance; the controllers' gains say how they do. 0 is off, the GPS code's
     #: (RESULTS, "the network's feedback")
     feedback_weight: float = 0.0
+    #: how the S-step weighs each (condition, step)'s regression: "controllers" by the
+    #: controllers' action precision there (the GPS code's, the MDGPS objective's); "normalized"
+    #: by that precision divided by its mean diagonal, so that every condition and step weighs
+    #: alike and only the precision's shape across the action's dimensions is kept. PI2 shrinks
+    #: each step's covariance on its own, and late in fine-tuning the controllers' precision can
+    #: span orders of magnitude across steps (``precision_top_share`` in the diagnostics). The
+    #: policy's covariance is fitted to the controllers' precision either way (RESULTS, "the
+    #: S-step's weights")
+    s_step_precision: Literal["controllers", "normalized"] = "controllers"
     #: the torch stream of the controllers' noise, the S-step's batches and dropout, and a
     #: scratch fine-tuning start's weights; not the scenes (``condition_seed``)
     seed: int = 0
@@ -372,6 +383,11 @@ class GPSConfig:
                 "the S-step: it must be finite and non-negative, and positive only with algo=mdgps "
                 f"and gps.relabel_policy_states=off (got {self.feedback_weight} with "
                 f"algo={self.algo!r}, relabel_policy_states={self.relabel_policy_states!r})"
+            )
+        if self.s_step_precision not in S_STEP_PRECISIONS:
+            raise ValueError(
+                f"gps.s_step_precision must be one of {', '.join(S_STEP_PRECISIONS)}, "
+                f"got {self.s_step_precision!r}"
             )
         if self.conditions not in CONDITION_SETS:
             raise ValueError(
@@ -597,8 +613,11 @@ class GPSTrainer:
         - ``kl``, ``eta``, ``step_mult``: the C-step's KL to its reference, its Lagrange
           multiplier and the step-size multiplier (PI2: the sample weights' KL from uniform and
           their temperature, means over steps; the step size stays 1); ``action_gap``:
-          controller vs policy mean action at the samples; ``nu`` (BADMM): the policy-KL
-          weight; ``regression_loss``; ``exploration``: the new controllers' spread, the root
+          controller vs policy mean action at the samples, ``action_gap_applied`` the same
+          clipped to the torque limits; ``nu`` (BADMM): the policy-KL weight;
+          ``regression_loss``; ``precision_top_share``: the share of the S-step's weight (the
+          controllers' precision) on the tenth of its samples that carry most, 0.1 when
+          even; ``exploration``: the new controllers' spread, the root
           of their mean action variance (PI2 shrinks it by ``pi2_covariance_damping``);
           ``policy_kl`` (PI2): the mean of the term ``pi2_policy_weight`` adds to PI2's cost,
           in expectation half the squared gap of the sampling controllers' actions from the
@@ -802,9 +821,16 @@ class GPSTrainer:
 
     @staticmethod
     def _record_action_gap(state: WorldState) -> None:
-        """Diagnostic: the sampling controllers' mean action vs the policy's, at the samples."""
-        gap = state.current.gains.mean_actions(state.samples.X) - state.policy_mean
+        """Diagnostic: the sampling controllers' mean action vs the policy's, at the samples, as
+        they ask (``action_gap``) and as the arm applies them, both clipped to the torque limits
+        (``action_gap_applied``: where the controllers ask for more than the limit, what the
+        network can match)."""
+        controllers = state.current.gains.mean_actions(state.samples.X)
+        gap = controllers - state.policy_mean
+        limit = TORQUE_LIMIT
+        applied = controllers.clamp(-limit, limit) - state.policy_mean.clamp(-limit, limit)
         state.diagnostics["action_gap"] = float(gap.norm(dim=-1).mean())
+        state.diagnostics["action_gap_applied"] = float(applied.norm(dim=-1).mean())
 
     def _forward_samples(
         self, states: Sequence[WorldState], obs: Sequence[TensorDictBase] | None = None
@@ -1106,10 +1132,15 @@ class GPSTrainer:
         feedback: torch.Tensor | None = None,
     ) -> TensorDictBase:
         """The S-step's training set of one world, flattened ``[M * N * T]``: ``target`` at the
-        observations ``obs`` (this iteration's samples' when None); with ``feedback [M, T, dU,
-        dX]``, the controllers' gains at each sample in units of the state's spread over the
-        samples (``feedback_weight``)."""
-        precision = state.controller.gains.precision[:, None].expand(*target.shape[:-1], -1, -1)
+        observations ``obs`` (this iteration's samples' when None), weighed by ``precision``
+        (the controllers', divided by ``precision_scale``: 1, or its mean diagonal with
+        ``s_step_precision="normalized"``); with ``feedback [M, T, dU, dX]``, the controllers'
+        gains at each sample in units of the state's spread over the samples (``feedback_weight``)."""
+        precision = state.controller.gains.precision  # [M, T, dU, dU]
+        scale = torch.ones(precision.shape[:2], dtype=precision.dtype)
+        if self.config.s_step_precision == "normalized":
+            scale = precision.diagonal(dim1=-2, dim2=-1).mean(-1)
+        precision = (precision / scale[..., None, None])[:, None].expand(*target.shape[:-1], -1, -1)
         weights = weights * weights.numel() / weights.sum()  # mean 1 ...
         median = weights[weights > 1e-2].median()
         weights = weights.clamp_max(2 * median) / median  # ... at most twice the robust median
@@ -1119,6 +1150,7 @@ class GPSTrainer:
             target = target.clamp(-TORQUE_LIMIT, TORQUE_LIMIT)
         data["target_action"] = target.to(torch.float32)
         data["precision"] = precision.to(torch.float32)
+        data["precision_scale"] = scale[:, None].expand(target.shape[:-1]).to(torch.float32)
         data["weight"] = weights.to(torch.float32)
         if feedback is not None:
             scale = state_spread(state.samples.X)  # [dX]
@@ -1154,7 +1186,8 @@ class GPSTrainer:
                 loss.backward()
                 self.optimizer.step()
             self._fit_policy_covariance(targets)
-        for name in targets:
+        for name, data in targets.items():
+            self.states[name].diagnostics["precision_top_share"] = _top_share(_controllers_weight(data))
             self.states[name].diagnostics["regression_loss"] = float(losses["world_loss"][name])
             if name in losses["feedback_loss"].keys():
                 self.states[name].diagnostics["feedback_loss"] = float(losses["feedback_loss"][name])
@@ -1169,6 +1202,7 @@ class GPSTrainer:
             entry = pooled.setdefault(id(module), [module, 0.0, 0.0])
             w = data["weight"].to(torch.float64)
             precision = data["precision"].to(torch.float64).diagonal(dim1=-2, dim2=-1)
+            precision = precision * data["precision_scale"].to(torch.float64)[:, None]  # the controllers'
             entry[1] = entry[1] + (w[:, None] * precision).sum(0) + 2 * w.numel() * self.config.ent_reg
             entry[2] = entry[2] + w.sum()
         for module, precision_sum, weight_sum in pooled.values():
@@ -1235,6 +1269,26 @@ class GPSTrainer:
         self.history = list(state["history"])
         for name, world_state in state["worlds"].items():
             _load_world_state(self.states[name], world_state)
+
+
+def _controllers_weight(data: TensorDictBase) -> torch.Tensor:
+    """Each row of an S-step training set's weight times the trace of its controllers' precision
+    (whatever ``precision_scale`` the regression divided it by)."""
+    trace = data["precision"].to(torch.float64).diagonal(dim1=-2, dim2=-1).sum(-1)
+    return data["weight"].to(torch.float64) * trace * data["precision_scale"].to(torch.float64)
+
+
+def _top_share(weight: torch.Tensor, fraction: float = 0.1) -> float:
+    """The share of ``weight``'s sum held by its largest ``fraction`` of entries: ``fraction``
+    when they are equal, near 1 when a few hold it all.
+
+    Examples:
+        >>> _top_share(torch.ones(20)), round(_top_share(torch.tensor([1.0] * 18 + [1e6, 1e6])), 5)
+        (0.1, 0.99999)
+    """
+    weight = weight.flatten().to(torch.float64)
+    top = weight.topk(max(1, round(fraction * weight.numel()))).values
+    return float(top.sum() / weight.sum())
 
 
 def _as_applied(jacobian: torch.Tensor, mean: torch.Tensor) -> torch.Tensor:
