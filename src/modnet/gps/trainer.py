@@ -1137,10 +1137,11 @@ class GPSTrainer:
         ``s_step_precision="normalized"``); with ``feedback [M, T, dU, dX]``, the controllers'
         gains at each sample in units of the state's spread over the samples (``feedback_weight``)."""
         precision = state.controller.gains.precision  # [M, T, dU, dU]
-        scale = torch.ones(precision.shape[:2], dtype=precision.dtype)
+        precision_scale = torch.ones(precision.shape[:2], dtype=precision.dtype)
         if self.config.s_step_precision == "normalized":
-            scale = precision.diagonal(dim1=-2, dim2=-1).mean(-1)
-        precision = (precision / scale[..., None, None])[:, None].expand(*target.shape[:-1], -1, -1)
+            precision_scale = precision.diagonal(dim1=-2, dim2=-1).mean(-1)
+        precision = precision / precision_scale[..., None, None]
+        precision = precision[:, None].expand(*target.shape[:-1], -1, -1)
         weights = weights * weights.numel() / weights.sum()  # mean 1 ...
         median = weights[weights > 1e-2].median()
         weights = weights.clamp_max(2 * median) / median  # ... at most twice the robust median
@@ -1150,7 +1151,7 @@ class GPSTrainer:
             target = target.clamp(-TORQUE_LIMIT, TORQUE_LIMIT)
         data["target_action"] = target.to(torch.float32)
         data["precision"] = precision.to(torch.float32)
-        data["precision_scale"] = scale[:, None].expand(target.shape[:-1]).to(torch.float32)
+        data["precision_scale"] = precision_scale[:, None].expand(target.shape[:-1]).to(torch.float32)
         data["weight"] = weights.to(torch.float32)
         if feedback is not None:
             scale = state_spread(state.samples.X)  # [dX]
@@ -1201,8 +1202,7 @@ class GPSTrainer:
             module = list(self.bank.parts(self.bank.world(name)).values())[-1]
             entry = pooled.setdefault(id(module), [module, 0.0, 0.0])
             w = data["weight"].to(torch.float64)
-            precision = data["precision"].to(torch.float64).diagonal(dim1=-2, dim2=-1)
-            precision = precision * data["precision_scale"].to(torch.float64)[:, None]  # the controllers'
+            precision = _controllers_precision_diagonal(data)
             entry[1] = entry[1] + (w[:, None] * precision).sum(0) + 2 * w.numel() * self.config.ent_reg
             entry[2] = entry[2] + w.sum()
         for module, precision_sum, weight_sum in pooled.values():
@@ -1271,11 +1271,16 @@ class GPSTrainer:
             _load_world_state(self.states[name], world_state)
 
 
+def _controllers_precision_diagonal(data: TensorDictBase) -> torch.Tensor:
+    """The diagonal ``[rows, dU]`` of each row's controllers' precision in an S-step training set
+    (:meth:`GPSTrainer._targets`), whatever ``precision_scale`` the regression divided it by."""
+    diagonal = data["precision"].to(torch.float64).diagonal(dim1=-2, dim2=-1)
+    return diagonal * data["precision_scale"].to(torch.float64)[:, None]
+
+
 def _controllers_weight(data: TensorDictBase) -> torch.Tensor:
-    """Each row of an S-step training set's weight times the trace of its controllers' precision
-    (whatever ``precision_scale`` the regression divided it by)."""
-    trace = data["precision"].to(torch.float64).diagonal(dim1=-2, dim2=-1).sum(-1)
-    return data["weight"].to(torch.float64) * trace * data["precision_scale"].to(torch.float64)
+    """Each row of an S-step training set's weight times the trace of its controllers' precision."""
+    return data["weight"].to(torch.float64) * _controllers_precision_diagonal(data).sum(-1)
 
 
 def _top_share(weight: torch.Tensor, fraction: float = 0.1) -> float:
