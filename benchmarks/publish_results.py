@@ -39,7 +39,9 @@ in how many of them each seed reached it; its last line is the same as JSON:
     python benchmarks/publish_results.py finetune-table docs/results/manipulation_*_elu_*_seed*_epyc.json
 
 With ``--iterations N`` both fine-tuning kinds read each run's first N iterations only, the
-figures of a shorter budget from longer runs (:func:`first_iterations`).
+figures of a shorter budget from longer runs (:func:`first_iterations`). With
+``--network-on training`` the table reads the network run on the conditions its samples were
+drawn on instead of at the test positions: whether it follows its own samples.
 """
 
 from __future__ import annotations
@@ -690,24 +692,36 @@ def _samples_cell(figures: dict) -> str:
     return cell if figures["first_success"] is None else f"{cell}, first {figures['first_success']}"
 
 
-def finetune_table(published: list[dict]) -> tuple[str, dict]:
+#: where ``finetune-table`` reads the network: the published curve of each place it was run
+NETWORK_CURVES = {"test": "curves", "training": "training_conditions"}
+
+
+def finetune_table(published: list[dict], network_on: str = "test") -> tuple[str, dict]:
     """The network's figures of published fine-tuning runs (see :func:`network_figures`), and
     where a run recorded them its samples' (:func:`samples_figures`, under ``"samples"``), per
     experiment (grouped as in :func:`finetune_figure`), start and seed, as markdown tables (a
     row per seed, a column per start: the network's cell, then the samples') and a summary: per
     experiment and start, each seed's figures, the seeds whose network reached the success
     distance, and the mean of the seeds' means; with several experiments, also per start and
-    seed how many of them reached it (``"across"``). Raises ``ValueError`` for a repeated seed
-    within an experiment.
+    seed how many of them reached it (``"across"``). ``network_on`` picks the network's curve:
+    at the test positions (``"test"``, the published ``curves``) or run on the conditions its
+    samples were drawn on (``"training"``, ``training_conditions``). Raises ``ValueError`` for a
+    repeated seed within an experiment, or a run that did not record the curve asked for.
     """
+    if network_on not in NETWORK_CURVES:
+        raise ValueError(f"the network is read on one of {', '.join(NETWORK_CURVES)}, got {network_on!r}")
+    key = NETWORK_CURVES[network_on]
     groups, common = _experiments(published)
     tables, summary = [], {}
     for name, runs in groups.items():
-        starts = [s for s in START_COLORS if any(s in p["finetune"]["curves"] for p in runs)]
+        for p in runs:
+            if not p["finetune"].get(key):
+                raise ValueError(f"seed {p['seed']} of {name!r} recorded no network curve {key!r}")
+        starts = [s for s in START_COLORS if any(s in p["finetune"][key] for p in runs)]
         figures: dict[str, dict[int, dict]] = {start: {} for start in starts}
         for p in runs:
             sampled, success = p["finetune"].get("sampled") or {}, p["success_distance"]
-            for start, curve in p["finetune"]["curves"].items():
+            for start, curve in p["finetune"][key].items():
                 figures[start][p["seed"]] = network_figures(curve, success)
                 if start in sampled:
                     figures[start][p["seed"]]["samples"] = samples_figures(sampled[start], success)
@@ -719,7 +733,9 @@ def finetune_table(published: list[dict]) -> tuple[str, dict]:
             }
             for start, by_seed in figures.items()
         }
-        rows = [f"### {name}", "", "| seed | " + " | ".join(starts) + " |", "|---" * (len(starts) + 1) + "|"]
+        heading = name if network_on == "test" else f"{name}, the network on its training conditions"
+        rows = [f"### {heading}", "", "| seed | " + " | ".join(starts) + " |"]
+        rows.append("|---" * (len(starts) + 1) + "|")
         for p in runs:
             cells = [_cell(figures[s][p["seed"]]) if p["seed"] in figures[s] else "" for s in starts]
             rows.append(f"| {p['seed']} | " + " | ".join(cells) + " |")
@@ -786,18 +802,26 @@ def main() -> None:
     parser.add_argument(
         "--iterations", type=int, help="fine-tuning kinds: each run's first N iterations (a shorter budget)"
     )
+    parser.add_argument(
+        "--network-on",
+        choices=list(NETWORK_CURVES),
+        default="test",
+        help="finetune-table: the network at the test positions (default) or on its training conditions",
+    )
     args = parser.parse_args()
     if args.experiment is None and args.kind != "finetune-table":
         parser.error(f"{args.kind} writes under {args.docs}: give its name with --experiment")
     if args.iterations is not None and not args.kind.startswith("finetune"):
         parser.error(f"--iterations cuts fine-tuning runs; {args.kind} reads none")
+    if args.network_on != "test" and args.kind != "finetune-table":
+        parser.error(f"--network-on picks finetune-table's curve; {args.kind} reads no other")
     if args.kind in PUBLISHED:
         read, what, name = PUBLISHED[args.kind]
         try:
             published = [json.loads(path.read_text()) for path in args.paths]
             if args.iterations is not None:
                 published = first_iterations(published, args.iterations)
-            drawn, summary = read(published)
+            drawn, summary = read(published, args.network_on) if name is None else read(published)
         except KeyError as error:
             parser.error(f"{args.kind}: a file is not {what} (it has no {error})")
         except (OSError, ValueError) as error:

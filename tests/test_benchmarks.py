@@ -779,6 +779,37 @@ def test_finetune_table_reads_a_shorter_budget_from_longer_runs(tmp_path):
     assert done.returncode == 2 and "lowo reads none" in done.stderr, done.stderr
 
 
+def test_finetune_table_reads_the_network_on_its_training_conditions_where_asked(tmp_path):
+    """``--network-on training``: the network run on the conditions its samples were drawn on
+    (``training_conditions``), the figures of whether it follows its own samples."""
+    publish = load_benchmark("publish_results")
+    run = published_finetuning(0, {"composed": [0.12, 0.04]}, {"composed": [0.15, 0.09, 0.08]})
+    run["finetune"]["training_conditions"] = {"composed": [0.16, 0.06, 0.03]}
+    _, test = publish.finetune_table([run])
+    text, training = publish.finetune_table([run], network_on="training")
+    assert test["experiments"]["(no further options)"]["composed"]["reached"] == []
+    composed = training["experiments"]["(no further options)"]["composed"]
+    assert composed["reached"] == [0] and composed["seeds"][0]["best"] == 0.03
+    assert composed["seeds"][0]["samples"] == {"first": 0.12, "last": 0.04, "first_success": 2}
+    assert "the network on its training conditions" in text
+    assert "| 0 | **0.030 (2)** / 0.083, first 2, 1 its; 0.120 -> 0.040, first 2 |" in text
+    with pytest.raises(ValueError, match="recorded no network curve 'training_conditions'"):
+        publish.finetune_table([published_finetuning(1, {}, {"composed": [0.15]})], network_on="training")
+    with pytest.raises(ValueError, match="one of test, training, got 'train'"):
+        publish.finetune_table([run], network_on="train")
+
+    path = tmp_path / "run.json"
+    path.write_text(json.dumps(run))
+    script = BENCHMARKS / "publish_results.py"
+    done = run_script(script, "finetune-table", "--network-on", "training", str(path))
+    assert done.returncode == 0, done.stderr
+    printed = json.loads(done.stdout.splitlines()[-1])["experiments"]["(no further options)"]
+    assert printed["composed"]["reached"] == [0]
+    done = run_script(script, "finetune-figure", str(path), "--network-on", "training", "--experiment", "x")
+
+    assert done.returncode == 2 and "finetune-figure reads no other" in done.stderr, done.stderr
+
+
 def test_imitation_capacity_takeover_hands_the_arm_from_the_network_to_the_controllers_at_its_step():
     """``takeover``: the network's mean actions before the step, then the controllers' mean
     actions at the states the network has led the arm to (DAgger's labels, acted out)."""
