@@ -821,7 +821,10 @@ def main() -> None:
             published = [json.loads(path.read_text()) for path in args.paths]
             if args.iterations is not None:
                 published = first_iterations(published, args.iterations)
-            drawn, summary = read(published, args.network_on) if name is None else read(published)
+            if args.kind == "finetune-table":
+                drawn, summary = read(published, args.network_on)
+            else:
+                drawn, summary = read(published)
         except KeyError as error:
             parser.error(f"{args.kind}: a file is not {what} (it has no {error})")
         except (OSError, ValueError) as error:
