@@ -806,7 +806,6 @@ def test_finetune_table_reads_the_network_on_its_training_conditions_where_asked
     printed = json.loads(done.stdout.splitlines()[-1])["experiments"]["(no further options)"]
     assert printed["composed"]["reached"] == [0]
     done = run_script(script, "finetune-figure", str(path), "--network-on", "training", "--experiment", "x")
-
     assert done.returncode == 2 and "finetune-figure reads no other" in done.stderr, done.stderr
 
 
