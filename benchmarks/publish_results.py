@@ -601,13 +601,13 @@ def finetune_figure(published: list[dict]) -> tuple[Figure, dict]:
             ax.axhline(success, color="k", lw=0.8, ls="--", label="success distance")
             ax.set_xlabel("GPS iteration on the held-out world")
             ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+        axes[0, column].legend(fontsize="x-small")  # the starts this experiment drew
         seeds = [p["seed"] for p in runs]
         title = f"{textwrap.fill(name, 60)}\nseeds {', '.join(map(str, seeds))}"
         axes[0, column].set_title(title, fontsize="small")
         summary[name] = {"seeds": seeds, "first_success": found}
     axes[0, 0].set_ylabel("samples, training conditions")
     axes[1, 0].set_ylabel("network, test positions")
-    axes[0, 0].legend(fontsize="x-small")
     fig.suptitle(textwrap.fill(" ".join(common), 160), fontsize="x-small")
     return fig, {"success_distance": published[0]["success_distance"], "experiments": summary}
 

@@ -651,6 +651,9 @@ def test_finetune_figure_groups_seeds_into_experiments_and_finds_each_starts_fir
     assert len(fig.axes) == 4  # samples above, the network below, one column per experiment
     # at two seeds of the same length a thick median is drawn beside each seed's thin line
     assert [line.get_linewidth() for line in fig.axes[0].get_lines()][:3] == [0.7, 0.7, 2.2]
+    # each column's legend names the starts it drew, not only the first column's
+    legends = [[text.get_text() for text in ax.get_legend().get_texts()] for ax in fig.axes[:2]]
+    assert legends == [["composed", "success distance"], ["composed", "scratch shaping", "success distance"]]
 
     # a run of an older commit that spelt an option differently joins its experiment
     relabelled = [
