@@ -136,23 +136,22 @@ def test_a_scratch_start_reads_nothing_the_bank_learned(tmp_path):
     """Both scratch starts depend on the bank's architecture and the seed only: two saved banks
     with different weights and input normalisation give the same start. RESULTS leans on this
     to run scratch starts from a bank trained for a single GPS iteration."""
+    scratch = ("scratch_shaping", "scratch_no_shaping")
     starts = {}
     for bank_seed in (3, 7):
         bank = ModuleBank.build(ROBOTS, TASKS, seed=bank_seed)
-        state = bank.state_dict()
-        for key in state:
-            if "normalizers" in key:
-                state[key] += bank_seed  # as if fitted to other samples
-        bank.load_state_dict(state)
-        bank.save(tmp_path / f"bank{bank_seed}")
-        for start in ("scratch_shaping", "scratch_no_shaping"):
-            starts[bank_seed, start] = _start_bank(tmp_path / f"bank{bank_seed}", start, *HELD_OUT, None, 0)
-    for start in ("scratch_shaping", "scratch_no_shaping"):
-        one, other = starts[3, start].state_dict(), starts[7, start].state_dict()
+        shifted = {k: v + bank_seed if "normalizers" in k else v for k, v in bank.state_dict().items()}
+        bank.load_state_dict(shifted)  # as if its inputs were fitted to other samples
+        bank_dir = tmp_path / f"bank{bank_seed}"
+        bank.save(bank_dir)
+        for start in scratch:
+            starts[bank_seed, start] = _start_bank(bank_dir, start, *HELD_OUT, None, seed=0).state_dict()
+    for start in scratch:
+        one, other = starts[3, start], starts[7, start]
         assert one.keys() == other.keys()
         assert all(torch.equal(value, other[key]) for key, value in one.items()), start
-    saved = ModuleBank.load(tmp_path / "bank7").state_dict()
-    assert not any(torch.equal(saved[k], one[k]) for k in one if "normalizers" in k and k.endswith("loc"))
+    saved, fresh = ModuleBank.load(tmp_path / "bank7").state_dict(), starts[7, "scratch_shaping"]
+    assert not any(torch.equal(saved[k], fresh[k]) for k in fresh if "normalizers" in k and k.endswith("loc"))
 
 
 def test_a_monolithic_wrong_task_start_is_the_same_robot_s_network_for_the_wrong_task(tmp_path):
