@@ -297,6 +297,18 @@ def test_defaults_are_the_paper_universe_wandb_offline_and_the_gps_seed_follows_
     assert (tiny.gps.horizon, tiny.gps.iterations) == (15, 2)
 
 
+def test_a_finetune_seed_configures_fine_tuning_alike_at_every_run_seed():
+    """With ``eval.finetune_seed`` set, fine-tuning's config does not depend on the run's seed;
+    a scratch start reads nothing of the bank (tests/test_evaluate.py), so it is one run per
+    ``eval.finetune_seed`` at every bank seed, as RESULTS reports."""
+    drawn = [composed("universe=tiny", f"seed={seed}", "eval.finetune_seed=100") for seed in (3, 7)]
+    assert drawn[0].gps_config().seed != drawn[1].gps_config().seed
+    assert drawn[0].finetune_gps_config() == drawn[1].finetune_gps_config()
+    assert drawn[0].finetune_gps_config().seed == 100
+    unset = [composed("universe=tiny", f"seed={seed}") for seed in (3, 7)]
+    assert unset[0].finetune_gps_config() != unset[1].finetune_gps_config()
+
+
 def test_flatten_gives_dotted_keys():
     assert flatten({"gps": {"lr": 0.1, "badmm": {"dual_rate": 0.2}}, "seed": 0}) == {
         "gps.lr": 0.1,

@@ -244,7 +244,9 @@ class EvalConfig:
             the scratch starts' weights (:class:`~modnet.gps.GPSConfig`'s ``seed``); None:
             ``gps.seed``. The bank, the held-out world's scenes and the zero-shot table stay
             as they are, so several values on copies of one run (``resume=true``; not part of
-            a checkpoint's identity) measure how far fine-tuning alone moves a result.
+            a checkpoint's identity) measure how far fine-tuning alone moves a result. A
+            scratch start reads nothing of the bank, so with this set it is the same run at
+            every ``seed``: one scratch run per value, not one per bank.
     """
 
     conditions: str = "test"
