@@ -60,6 +60,22 @@ def test_multi_world_training_lowers_every_worlds_cost(algo):
     assert trainer.samples == {"trajectories": 144, "env_steps": 144 * 20}
 
 
+def test_the_per_condition_figures_are_the_samples_per_condition_means():
+    """``distance`` averages every sample; ``distance_worst_condition`` and ``conditions_within``
+    say whether a falling mean is every condition moving or some moving while others stay put."""
+    trainer = trainer_for([("three_link", "reach_red")])
+    diagnostics = trainer.step()["three_link/reach_red"]
+    state = trainer.states["three_link/reach_red"]
+    per_condition = state.samples.distance.mean(-1)  # [conditions]
+    assert per_condition.shape == (4,)
+    assert diagnostics["distance_worst_condition"] == pytest.approx(float(per_condition.max()))
+    assert diagnostics["distance_worst_condition"] >= diagnostics["distance"]
+    success = state.sampler.world.task.success_distance
+    assert diagnostics["conditions_within"] == int((per_condition < success).sum())
+    # at the first iteration the arm starts far from the target: no condition is within
+    assert diagnostics["conditions_within"] == 0 < per_condition.min() - success
+
+
 def test_on_a_contact_free_world_the_predicted_cost_is_what_the_new_controllers_then_sample():
     """``predicted_cost`` is the task cost alone, under the fitted dynamics: on reaching (smooth
     dynamics) it is within a factor of 2 of the next iteration's sampled cost, while BADMM's

@@ -24,8 +24,8 @@ Examples:
     >>> bank = ModuleBank.build(["three_link", "four_link"], ["reach_red", "reach_black"])
     >>> trainer = GPSTrainer(bank, worlds, GPSConfig(samples_per_condition=2, horizon=10, sgd_steps=5))
     >>> diagnostics = trainer.step()
-    >>> sorted(diagnostics["three_link/reach_red"])[:3]
-    ['action_gap', 'action_gap_applied', 'distance']
+    >>> sorted(diagnostics["three_link/reach_red"])[:4]
+    ['action_gap', 'action_gap_applied', 'conditions_within', 'distance']
 """
 
 from __future__ import annotations
@@ -679,9 +679,13 @@ class GPSTrainer:
         state.current = Linearised(state.controller.gains, dynamics, cost)  # a snapshot
         state.samples = samples
         state.held.fill_(False)
+        per_condition = samples.distance.mean(-1)  # [M]: each condition's mean over its samples
         state.diagnostics = {
             "sampled_cost": float(sampled.mean()),
             "distance": float(samples.distance.mean()),
+            # a mean can fall while some conditions never move: these tell the two apart
+            "distance_worst_condition": float(per_condition.max()),
+            "conditions_within": int((per_condition < world.task.success_distance).sum()),
         }
 
     def iteration_cost(self, state: WorldState) -> QuadraticCost:
