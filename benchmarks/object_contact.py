@@ -45,19 +45,28 @@ from modnet.worlds import get_world
 
 def contact(task: TaskDefinition, td: TensorDictBase) -> dict[str, torch.Tensor]:
     """Per trajectory of a ``[B, T]`` rollout: the closest the end effector comes to the object,
+    where it is then (``offset_at_closest``: end effector minus object, x and y, ``[B, 2]``),
     the most the object moves, the most it comes closer to its goal than where it started, and
     the distances from the arm's base (the origin) of the object at the start and of the end
     effector at the end."""
     first = td["task", "state"][:, 0].double()
     states = td["next", "task", "state"].double()
     moved = (task.part(states, task.moved) - task.part(first, task.moved)[:, None]).norm(dim=-1)
+    offset = task.shaping_offset(states)  # [B, T, 3]
+    closest, when = offset.norm(dim=-1).min(-1)
     return {
-        "closest_approach": task.shaping_offset(states).norm(dim=-1).min(-1).values,
+        "closest_approach": closest,
+        "offset_at_closest": offset[torch.arange(len(when)), when, :2],
         "object_moved": moved.max(-1).values,
         "progress": task.distance(first) - task.distance(states).min(-1).values,
         "object_from_base": task.part(first, task.moved).norm(dim=-1),
         "end_effector_from_base": task.part(states[:, -1], "ee").norm(dim=-1),
     }
+
+
+def rounded(values):
+    """``values`` (a float or nested lists of them, as ``Tensor.tolist`` gives) to 4 decimals."""
+    return [rounded(v) for v in values] if isinstance(values, list) else round(values, 4)
 
 
 def objects_seen(config: GPSConfig, results: dict, robot: str) -> dict[str, list[float]]:
@@ -110,7 +119,7 @@ def main() -> None:
     deterministic = {}
     for name, (policy_bank, policy_task) in policies.items():
         td, _ = rollout(policy_bank, robot, policy_task, env)
-        row = {key: [round(v, 4) for v in value.tolist()] for key, value in contact(definition, td).items()}
+        row = {key: rounded(value.tolist()) for key, value in contact(definition, td).items()}
         row["distance"] = [round(v, 4) for v in env.final_distance(td).tolist()]
         deterministic[name] = row
         print(

@@ -38,7 +38,14 @@ in how many of them each seed reached it; its last line is the same as JSON:
 
     python benchmarks/publish_results.py finetune-table docs/results/manipulation_*_elu_*_seed*_epyc.json
 
-With ``--iterations N`` both fine-tuning kinds read each run's first N iterations only, the
+``per-scene-figure`` reads outputs of ``benchmarks/finetune_per_scene.py`` (its last lines,
+saved as JSON files) and draws ``docs/<experiment>.png``: a panel per output, every scene's
+samples iteration by iteration, coloured by when one of them first moved the object:
+
+    python benchmarks/publish_results.py per-scene-figure docs/results/finetune_per_scene_*.json \
+        --experiment finetune_per_scene
+
+With ``--iterations N`` the two ``finetune-`` kinds read each run's first N iterations only, the
 figures of a shorter budget from longer runs (:func:`first_iterations`). With
 ``--network-on training`` the table reads the network run on the conditions its samples were
 drawn on instead of at the test positions: whether it follows its own samples.
@@ -781,10 +788,57 @@ def _across_experiments(summary: dict) -> tuple[dict, str]:
 
 #: the kinds that read published JSON files: what reads them, what each file must be, and the
 #: PNG's name for those that draw (the others print a markdown table)
+#: finetune_per_scene.py's outcome of a scene: first touched at iteration 1, later, never
+TOUCH_COLORS = {"at the first iteration": "C2", "later": "C1", "never": "C3"}
+
+
+def _touched(scene: dict) -> str:
+    first = scene["sampled"]["first_touched"]
+    return "never" if first is None else "at the first iteration" if first == 1 else "later"
+
+
+def per_scene_figure(published: list[dict]) -> tuple[Figure, dict]:
+    """``benchmarks/finetune_per_scene.py``'s outputs (its last lines), a panel each: every
+    scene's samples, iteration by iteration, coloured by when one of them first moved the
+    object (at the first iteration, later, never). The summary gives, per output, the run's
+    command, how many scenes each kind holds, and how many of each end within the success
+    distance. Raises ``ValueError`` for no outputs."""
+    if not published:
+        raise ValueError("no published results to read")
+    columns = min(3, len(published))
+    rows = -(-len(published) // columns)
+    fig = Figure(figsize=(4.6 * columns + 0.5, 3.6 * rows), layout="constrained")
+    axes = fig.subplots(rows, columns, squeeze=False, sharey=True).ravel()
+    for unused in axes[len(published) :]:
+        unused.set_visible(False)
+    summary = []
+    for ax, out in zip(axes, published, strict=False):
+        kinds = {kind: {"scenes": 0, "within": 0} for kind in TOUCH_COLORS}
+        for scene in out["scenes"]:
+            kind = _touched(scene)
+            kinds[kind]["scenes"] += 1
+            kinds[kind]["within"] += scene["outcome"] == "within"
+            curve = scene["sampled"]["by_iteration"]
+            ax.plot(range(1, len(curve) + 1), curve, color=TOUCH_COLORS[kind], lw=0.8, alpha=0.8)
+        for kind, colour in TOUCH_COLORS.items():
+            ax.plot([], [], color=colour, label=f"first moved {kind} ({kinds[kind]['scenes']})")
+        ax.axhline(out["success_distance"], color="k", lw=0.8, ls="--", label="success distance")
+        options = [o for o in out["run_command"].split() if o.startswith(("seed=", "eval.finetune_seed="))]
+        ax.set_title(f"{out['holdout']}, {out['start']}\n{' '.join(options)}", fontsize="small")
+        ax.set_xlabel("GPS iteration on the held-out world")
+        ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+        ax.legend(fontsize="x-small")
+        summary.append({"run_command": out["run_command"], "start": out["start"], "touched": kinds})
+    for ax in axes[::columns]:
+        ax.set_ylabel("each scene's samples (mean distance)")
+    return fig, {"runs": summary}
+
+
 PUBLISHED = {
     "figure": (paper_figure, "a published zero-shot result", "{}_vs_paper.png"),
     "finetune-figure": (finetune_figure, "a published fine-tuning result", "{}.png"),
     "finetune-table": (finetune_table, "a published fine-tuning result", None),
+    "per-scene-figure": (per_scene_figure, "an output of finetune_per_scene.py", "{}.png"),
 }
 
 

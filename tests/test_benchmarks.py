@@ -8,7 +8,7 @@ import mujoco
 import numpy as np
 import pytest
 import torch
-from commands import BENCHMARKS, load_script, run_script
+from commands import BENCHMARKS, load_script, run_py, run_script
 from tensordict import TensorDict
 
 from modnet.bank import ModuleBank
@@ -275,6 +275,7 @@ def test_object_contact_measures_approach_displacement_and_progress_towards_the_
     )
     found = contact(task, td)
     torch.testing.assert_close(found["closest_approach"], torch.full((2,), 0.06, dtype=torch.float64))
+    torch.testing.assert_close(found["offset_at_closest"], -xy(0.06, 0.0).expand(2, 2))  # behind it
     torch.testing.assert_close(found["object_moved"], torch.full((2,), 0.1, dtype=torch.float64))
     assert found["progress"][0] == pytest.approx(0.1) and found["progress"][1] < 0
     torch.testing.assert_close(found["object_from_base"], xy(0.2, 0.5).norm().expand(2))
@@ -491,6 +492,130 @@ def test_first_finetune_iteration_can_regress_onto_the_networks_own_linearisatio
     assert control["network_after"] != plain["network_after"]
 
 
+def test_finetune_per_scene_keeps_each_sample_with_its_scene():
+    """Samples ``[M, N, T]`` flattened for ``object_contact.contact`` and back: sample (m, n)
+    pulls the handle its own distance, with the end effector its own offset below it."""
+    per_scene = load_benchmark("finetune_per_scene")
+    task = get_world("three_link", "drawer_horizontal").task
+    M, N, T = 2, 3, 6
+    pulled = 0.01 * torch.arange(1, M * N + 1, dtype=torch.float64).reshape(M, N)
+    below = 0.02 + 0.01 * torch.arange(N, dtype=torch.float64).expand(M, N)
+    along = torch.linspace(0, 1, T, dtype=torch.float64)
+    states = torch.zeros(M, N, T, task.state_dim, dtype=torch.float64)
+    states[..., task.slot("handle")] = torch.stack(
+        [0.9 - along * pulled[..., None], torch.full((M, N, T), 0.4, dtype=torch.float64)], -1
+    )
+    states[..., task.slot("ee")] = states[..., task.slot("handle")]
+    states[..., task.slot("ee")][..., 1] -= below[..., None]
+    states[:, :, 0, task.slot("ee")] = 0.0  # each sample starts with the arm away
+    found = per_scene.contact(task, per_scene._as_rollout(states))
+    torch.testing.assert_close(found["object_moved"].reshape(M, N), pulled)
+    torch.testing.assert_close(found["closest_approach"].reshape(M, N), below)
+    offset = found["offset_at_closest"].reshape(M, N, 2)
+    torch.testing.assert_close(offset, torch.stack([torch.zeros(M, N, dtype=torch.float64), -below], -1))
+
+
+@pytest.fixture(scope="module")
+def tiny_drawer_run(tmp_path_factory):
+    """A few seconds of manipulation: 1 GPS iteration, then 2 of fine-tuning the composed start
+    on three_link/drawer_horizontal's 4 drawers with MDGPS and PI2, as experiment 2 fine-tunes."""
+    run_dir = tmp_path_factory.mktemp("tiny_drawer_run")
+    done = run_py(
+        "universe=manipulation",
+        "logger=csv",
+        "gps.iterations=1",
+        "gps.horizon=20",
+        "gps.samples_per_condition=2",
+        "gps.sgd_steps=20",
+        "gps.initial_sgd_steps=20",
+        "finetune=true",
+        "eval.finetune_iterations=2",
+        "eval.finetune_starts=[composed]",
+        "eval.finetune_algo=mdgps",
+        "eval.finetune_c_step=pi2",
+        "eval.finetune_samples_per_condition=4",
+        "eval.finetune_num_conditions=4",
+        "eval.random_conditions=0",
+        f"hydra.run.dir={run_dir}",
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    return run_dir
+
+
+def test_finetune_per_scene_reruns_the_runs_fine_tuning_and_splits_its_figures_by_scene(tiny_drawer_run):
+    results = json.loads((tiny_drawer_run / "results.json").read_text())
+    done = run_script(BENCHMARKS / "finetune_per_scene.py", str(tiny_drawer_run))
+    assert done.returncode == 0, done.stderr
+    out = json.loads(done.stdout.splitlines()[-1])
+    diagnosed = results["finetune_diagnostics"]["composed"]
+    assert out["matches_run"] and out["compared_iterations"] == out["iterations"] == 2
+    scenes = out["scenes"]
+    assert len(scenes) == 4 and len(out["touched_by_iteration"]) == 2
+    # the per-scene figures average to the run's own, iteration by iteration
+    for i, iteration in enumerate(diagnosed):
+        mean = np.mean([scene["sampled"]["by_iteration"][i] for scene in scenes])
+        assert mean == pytest.approx(iteration["distance"], abs=1e-4)
+        worst = max(scene["sampled"]["by_iteration"][i] for scene in scenes)
+        assert worst == pytest.approx(iteration["distance_worst_condition"], abs=1e-4)
+    assert out["counts"]["within"] == diagnosed[-1]["conditions_within"]
+    assert sum(out["counts"].values()) == 4
+    network = np.mean([scene["network"]["final"] for scene in scenes])
+    assert network == pytest.approx(results["finetune_training"]["composed"][0], abs=1e-4)
+    for scene in scenes:
+        assert len(scene["params"]) == 4 and len(scene["arm_qpos"]) == 3  # a drawer, three joints
+        assert len(scene["network"]["offset_at_closest"]) == 2
+        if scene["outcome"] == "never_moved":
+            assert scene["sampled"]["most_moved"] < out["moved_threshold"]
+
+
+def test_finetune_per_scene_refuses_a_world_without_an_object_and_a_missing_start(tiny_run, tiny_drawer_run):
+    run_dir, _, _ = tiny_run
+    done = run_script(BENCHMARKS / "finetune_per_scene.py", str(run_dir))
+    assert done.returncode == 2 and "moves nothing but the end effector" in done.stderr
+    done = run_script(BENCHMARKS / "finetune_per_scene.py", str(tiny_drawer_run), "--iterations", "0")
+    assert done.returncode == 2 and "--iterations must be at least 1, got 0" in done.stderr
+
+
+def per_scene_output(seed: int, first_touched: list[int | None], outcomes: list[str]) -> dict:
+    """What finetune_per_scene.py's last line holds, as much of it as the figure reads."""
+    scenes = [
+        {"sampled": {"first_touched": first, "by_iteration": [0.2, 0.1, 0.04]}, "outcome": outcome}
+        for first, outcome in zip(first_touched, outcomes, strict=True)
+    ]
+    return {
+        "run_command": f"python run.py universe=manipulation seed={seed} eval.finetune_seed=100",
+        "holdout": "three_link/drawer_horizontal",
+        "start": "composed",
+        "success_distance": 0.05,
+        "scenes": scenes,
+    }
+
+
+def test_per_scene_figure_counts_each_runs_scenes_by_when_they_were_first_moved(tmp_path):
+    paths = []
+    for seed, first, outcomes in (
+        (4, [1, 1, 1], ["within", "within", "partly"]),
+        (6, [1, 3, None], ["within", "within", "never_moved"]),
+    ):
+        paths.append(tmp_path / f"seed{seed}.json")
+        paths[-1].write_text(json.dumps(per_scene_output(seed, first, outcomes)))
+    args = ["per-scene-figure", *map(str, paths), "--experiment", "x", "--docs", str(tmp_path)]
+    done = run_script(BENCHMARKS / "publish_results.py", *args)
+    assert done.returncode == 0, done.stderr
+    summary = json.loads(done.stdout.splitlines()[-1])
+    assert (tmp_path / "x.png").read_bytes().startswith(b"\x89PNG")
+    first, second = (run["touched"] for run in summary["runs"])
+    assert first["at the first iteration"] == {"scenes": 3, "within": 2} and first["never"]["scenes"] == 0
+    assert second == {
+        "at the first iteration": {"scenes": 1, "within": 1},
+        "later": {"scenes": 1, "within": 1},
+        "never": {"scenes": 1, "within": 0},
+    }
+    paths[0].write_text(json.dumps({"holdout": "x"}))  # not an output of finetune_per_scene.py
+    done = run_script(BENCHMARKS / "publish_results.py", *args)
+    assert done.returncode == 2 and "not an output of finetune_per_scene.py" in done.stderr
+
+
 def test_interface_range_measures_the_held_out_interface_in_the_robot_modules_training_spreads():
     figures = load_script(BENCHMARKS / "interface_range.py", "interface_range").interface_figures
     seen = torch.randn(4000, 64, generator=torch.Generator().manual_seed(0))
@@ -539,6 +664,7 @@ def test_interface_range_refuses_a_monolithic_bank_in_one_line(tmp_path):
         ("interface_range.py", "no results.json, bank/manifest.json"),
         ("object_contact.py", "no results.json, bank/manifest.json, .hydra/config.yaml"),
         ("first_finetune_iteration.py", "no results.json, bank/manifest.json, .hydra/config.yaml"),
+        ("finetune_per_scene.py", "no results.json, bank/manifest.json, .hydra/config.yaml"),
         ("probe_vision.py", "no results.json, bank/manifest.json"),
     ],
 )
