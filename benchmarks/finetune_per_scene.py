@@ -99,6 +99,7 @@ def per_scene(run_dir: Path, start: str, iterations: int, moved: float) -> dict:
         run_distance.append(diagnostics["distance"])
         score(bank, robot, task, test_positions), score(bank, robot, task, scenes)
     sampled, moved_by, touched = torch.stack(sampled), torch.stack(moved_by), torch.stack(touched)  # [I, M]
+    last = found  # the last iteration's samples, [M, N, ...]
 
     # the rerun is the run's fine-tuning: every iteration's mean sampled distance, to 10 digits
     recorded = [d["distance"] for d in results.get("finetune_diagnostics", {}).get(start, [])][:iterations]
@@ -129,7 +130,7 @@ def per_scene(run_dir: Path, start: str, iterations: int, moved: float) -> dict:
                 "sampled": {
                     "by_iteration": _rounded(sampled[:, m]),
                     "best": _rounded(sampled[:, m].min()),
-                    **{key: _rounded(found[key][m].mean(0)) for key in CONTACT},
+                    **{key: _rounded(last[key][m].mean(0)) for key in CONTACT},
                     "most_moved": _rounded(moved_by[:, m].max()),
                     "first_touched": int(ever[0]) + 1 if len(ever) else None,
                 },
