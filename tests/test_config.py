@@ -37,6 +37,10 @@ def test_schemas_hold_every_library_field_with_its_default():
     assert run.bank_config() == BankConfig()
 
 
+#: the tiny universe samples 2 per condition, and PI2 at its default KL of 1 needs 3
+PI2_SAMPLES = "gps.samples_per_condition=3"
+
+
 def test_overrides_reach_the_library_configs():
     run = composed(
         "universe=tiny",
@@ -79,7 +83,9 @@ def test_overrides_reach_the_library_configs():
     by_jacobian = dataclasses.replace(exact.gps_config(), policy_linearization="jacobian")
     assert exact.finetune_gps_config() == by_jacobian
     assert exact.gps_config().policy_linearization == "regression"  # training regresses, as the GPS code
-    pi2 = composed("universe=tiny", "algo=badmm", "eval.finetune_algo=mdgps", "eval.finetune_c_step=pi2")
+    pi2 = composed(
+        "universe=tiny", "algo=badmm", "eval.finetune_algo=mdgps", "eval.finetune_c_step=pi2", PI2_SAMPLES
+    )
     assert pi2.finetune_gps_config() == dataclasses.replace(pi2.gps_config(), algo="mdgps", c_step="pi2")
     assert (pi2.gps_config().algo, pi2.gps_config().c_step) == ("badmm", "lqr")  # training's own
     wider = composed("universe=tiny", "eval.finetune_num_conditions=8")
@@ -108,21 +114,34 @@ def test_overrides_reach_the_library_configs():
     assert tracking.finetune_gps_config() == dataclasses.replace(by_mean, relabel_tracking_weight=1e-5)
     assert tracking.gps_config().relabel_tracking_weight is None
     held = composed(
-        "universe=tiny", "algo=mdgps", "eval.finetune_c_step=pi2",
-        "eval.finetune_pi2_policy_weight=0.1"
+        "universe=tiny",
+        "algo=mdgps",
+        "eval.finetune_c_step=pi2",
+        "eval.finetune_pi2_policy_weight=0.1",
+        PI2_SAMPLES,
     )
     assert held.finetune_gps_config().pi2_policy_weight == 0.1
     assert held.gps_config().pi2_policy_weight == 0.0
     smoothed = composed(
-        "universe=tiny", "algo=mdgps", "eval.finetune_c_step=pi2", "eval.finetune_pi2_step_smoothing=5"
+        "universe=tiny",
+        "algo=mdgps",
+        "eval.finetune_c_step=pi2",
+        "eval.finetune_pi2_step_smoothing=5",
+        PI2_SAMPLES,
     )
     assert smoothed.finetune_gps_config().pi2_step_smoothing == 5.0
     assert smoothed.gps_config().pi2_step_smoothing == 0.0
-    stepped = composed("universe=tiny", "algo=mdgps", "eval.finetune_c_step=pi2", "eval.finetune_pi2_kl=0.25")
+    stepped = composed(
+        "universe=tiny", "algo=mdgps", "eval.finetune_c_step=pi2", "eval.finetune_pi2_kl=0.25", PI2_SAMPLES
+    )
     assert stepped.finetune_gps_config().pi2_kl == 0.25
     assert stepped.gps_config().pi2_kl == GPSConfig.pi2_kl
     fed_back = composed(
-        "universe=tiny", "algo=mdgps", "eval.finetune_c_step=pi2", "eval.finetune_pi2_policy_feedback=true"
+        "universe=tiny",
+        "algo=mdgps",
+        "eval.finetune_c_step=pi2",
+        "eval.finetune_pi2_policy_feedback=true",
+        PI2_SAMPLES,
     )
     assert fed_back.finetune_gps_config().pi2_policy_feedback is True
     assert fed_back.gps_config().pi2_policy_feedback is False
@@ -143,19 +162,19 @@ def test_the_lqr_step_under_pi2_is_named_as_unread_and_the_pi2_step_given(caplog
     not read is said so before any work (a warning, since published PI2 commands carry one)."""
     pi2 = ("universe=tiny", "algo=mdgps", "eval.finetune_c_step=pi2", "eval.finetune_kl_step=0.2")
     with caplog.at_level(logging.WARNING, logger="modnet.config"):
-        composed(*pi2).check()
+        composed(*pi2, PI2_SAMPLES).check()
     assert "eval.finetune_kl_step=0.2 is the LQR's step" in caplog.text
     assert "eval.finetune_pi2_kl (now 1.0)" in caplog.text
     caplog.clear()
     with caplog.at_level(logging.WARNING, logger="modnet.config"):
-        composed("universe=tiny", "algo=mdgps", "gps.c_step=pi2", "gps.kl_step=0.5").check()
+        composed("universe=tiny", "algo=mdgps", "gps.c_step=pi2", "gps.kl_step=0.5", PI2_SAMPLES).check()
     assert "gps.kl_step=0.5 is the LQR's step" in caplog.text and "gps.pi2_kl (now 1.0)" in caplog.text
     assert "eval.finetune_kl_step" not in caplog.text  # fine-tuning inherits it: said once
     caplog.clear()
     with caplog.at_level(logging.WARNING, logger="modnet.config"):
-        composed(*pi2[:2], "eval.finetune_c_step=pilqr", "eval.finetune_kl_step=0.2").check()
-        composed(*pi2[:3], "eval.finetune_pi2_kl=0.5").check()
-        composed("universe=tiny", "algo=mdgps", "gps.c_step=pi2").check()
+        composed(*pi2[:2], "eval.finetune_c_step=pilqr", "eval.finetune_kl_step=0.2", PI2_SAMPLES).check()
+        composed(*pi2[:3], "eval.finetune_pi2_kl=0.5", PI2_SAMPLES).check()
+        composed("universe=tiny", "algo=mdgps", "gps.c_step=pi2", PI2_SAMPLES).check()
         composed("universe=tiny", "gps.kl_step=0.5").check()
     assert caplog.text == ""
 
@@ -167,7 +186,7 @@ def test_mdgps_only_options_under_badmm_are_refused_before_any_work_naming_the_f
         run = composed("universe=tiny", *overrides)
         with pytest.raises(ConfigError, match="use algo=mdgps"):
             validate(run)
-    validate(composed("universe=tiny", "algo=mdgps", "gps.c_step=pi2"))
+    validate(composed("universe=tiny", "algo=mdgps", "gps.c_step=pi2", PI2_SAMPLES))
 
 
 def test_training_one_factors_modules_is_refused_for_a_monolithic_bank_before_any_work():
@@ -249,6 +268,19 @@ def test_literal_choices_and_values_no_type_rules_out_fail_with_the_key():
         setattr(functools.reduce(getattr, path, run), name, value)
         with pytest.raises(ConfigError, match=message):
             run.check()
+
+
+def test_fine_tuning_pi2_on_too_few_samples_is_refused_before_any_work():
+    """PI2's weights of 2 samples can be at most log 2 = 0.69 from uniform: asked for its
+    default 1.0 it put all the weight on one sample and a 2-sample fine-tuning's regression loss
+    went infinite after the training. Now the command is refused, naming the options."""
+    overrides = ("universe=manipulation", "gps.samples_per_condition=2")
+    pi2 = ("eval.finetune_algo=mdgps", "eval.finetune_c_step=pi2")
+    message = r"eval\.finetune_algo=mdgps, eval\.finetune_c_step=pi2: gps\.pi2_kl=1\.0 needs more than 2"
+    with pytest.raises(ConfigError, match=message):
+        validate(composed(*overrides, *pi2))
+    validate(composed(*overrides))  # the LQR's C-step weighs no samples
+    validate(composed(*overrides, *pi2, "eval.finetune_samples_per_condition=3"))
 
 
 @pytest.mark.parametrize("universe", list(UNIVERSES))

@@ -268,6 +268,18 @@ def test_the_dynamics_ridge_reaches_every_fit(monkeypatch):
         small_config(dynamics_ridge=0.0)
 
 
+def test_pi2_is_refused_a_kl_its_samples_cannot_reach():
+    """The weights of N samples are at most log N from uniform: asked for more, PI2 puts all the
+    weight on one sample and its covariance collapses. 3 samples reach the default KL of 1."""
+    with pytest.raises(ValueError, match=r"gps\.pi2_kl=1\.0 needs more than 2 samples .* at least 3,"):
+        GPSConfig(algo="mdgps", c_step="pi2", samples_per_condition=2)
+    GPSConfig(algo="mdgps", c_step="pi2", samples_per_condition=3)
+    with pytest.raises(ValueError, match=r"at least 8, or a gps\.pi2_kl below 1\.95"):  # log 7 < 2 < log 8
+        GPSConfig(algo="mdgps", c_step="pilqr", samples_per_condition=7, pi2_kl=2.0)
+    GPSConfig(algo="mdgps", c_step="pilqr", samples_per_condition=8, pi2_kl=2.0)
+    GPSConfig(samples_per_condition=2)  # the LQR's C-step weighs no samples
+
+
 def test_the_step_multiplier_stays_within_its_bounds_and_bad_bounds_are_refused():
     bounds = dict(min_step_mult=0.7, max_step_mult=0.7)
     trainer = trainer_for(worlds=GRID[:1], **bounds, sgd_steps=10, initial_sgd_steps=10)

@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import time
 import zlib
 from collections import defaultdict
@@ -235,7 +236,7 @@ class GPSConfig:
     #: expert for DAgger?")
     relabel_tracking_weight: float | None = None
     #: PI2 and PILQR: the KL from uniform of each step's sample weights (the GPS code's ``kl_threshold``;
-    #: at most log N, all weight on the best sample)
+    #: at most log N, all weight on the best sample; a config asking for log N or more is refused)
     pi2_kl: float = 1.0
     #: PI2 and PILQR: the covariance is damped towards the old one by this power (the GPS code's
     #: ``covariance_damping``; larger keeps exploring longer)
@@ -351,6 +352,16 @@ class GPSConfig:
             raise ValueError(
                 "gps.pi2_kl and gps.pi2_covariance_damping must be positive, "
                 f"got {self.pi2_kl} and {self.pi2_covariance_damping}"
+            )
+        if self.c_step != "lqr" and not self.pi2_kl < math.log(self.samples_per_condition):
+            # PI2 would put all the weight on one sample, and its covariance would collapse to 0
+            enough = math.ceil(math.exp(self.pi2_kl))
+            enough += math.log(enough) <= self.pi2_kl
+            raise ValueError(
+                f"gps.pi2_kl={self.pi2_kl} needs more than {self.samples_per_condition} samples per "
+                f"condition: PI2's weights of N samples are at most log N from uniform (here "
+                f"{math.log(self.samples_per_condition):.3g}); use gps.samples_per_condition of at "
+                f"least {enough}, or a gps.pi2_kl below {math.log(self.samples_per_condition):.3g}"
             )
         if not self.pi2_policy_weight >= 0 or (
             self.pi2_policy_weight and (self.c_step != "pi2" or self.sample_on_policy)
