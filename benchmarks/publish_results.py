@@ -786,8 +786,6 @@ def _across_experiments(summary: dict) -> tuple[dict, str]:
     return across, "\n".join(rows)
 
 
-#: the kinds that read published JSON files: what reads them, what each file must be, and the
-#: PNG's name for those that draw (the others print a markdown table)
 #: finetune_per_scene.py's outcome of a scene: first touched at iteration 1, later, never
 TOUCH_COLORS = {"at the first iteration": "C2", "later": "C1", "never": "C3"}
 
@@ -834,6 +832,8 @@ def per_scene_figure(published: list[dict]) -> tuple[Figure, dict]:
     return fig, {"runs": summary}
 
 
+#: the kinds that read published JSON files: what reads them, what each file must be, and the
+#: PNG's name for those that draw (the others print a markdown table)
 PUBLISHED = {
     "figure": (paper_figure, "a published zero-shot result", "{}_vs_paper.png"),
     "finetune-figure": (finetune_figure, "a published fine-tuning result", "{}.png"),

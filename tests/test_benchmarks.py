@@ -568,7 +568,7 @@ def test_finetune_per_scene_reruns_the_runs_fine_tuning_and_splits_its_figures_b
             assert scene["sampled"]["most_moved"] < out["moved_threshold"]
 
 
-def test_finetune_per_scene_refuses_a_world_without_an_object_and_a_missing_start(tiny_run, tiny_drawer_run):
+def test_finetune_per_scene_refuses_a_world_without_an_object_and_no_iterations(tiny_run, tiny_drawer_run):
     run_dir, _, _ = tiny_run
     done = run_script(BENCHMARKS / "finetune_per_scene.py", str(run_dir))
     assert done.returncode == 2 and "moves nothing but the end effector" in done.stderr
