@@ -47,6 +47,23 @@ def test_the_temperature_puts_the_weights_exactly_kl_from_uniform(kl):
     assert bool((eta > MIN_TEMPERATURE).all())
 
 
+@pytest.mark.parametrize("samples", [1, 2, 3])
+def test_a_kl_the_samples_weights_cannot_reach_is_refused_not_met_by_one_sample(samples):
+    # the weights of N samples are at most log N from uniform; asked for that, PI2 would put
+    # every weight on one sample and collapse the covariance (stop 79's 2-sample fine-tuning)
+    cost_to_go = torch.arange(float(samples)).reshape(samples, 1).expand(samples, 4)
+    with pytest.raises(ValueError, match=f"weights of {samples} samples"):
+        temperatures(cost_to_go, math.log(samples))
+    with pytest.raises(ValueError, match="non-negative"):
+        temperatures(cost_to_go, -0.1)
+    gains = LinearGaussianGains.from_covariance(
+        torch.zeros(1, 4, 1, 1), torch.zeros(1, 4, 1), torch.eye(1).expand(1, 4, 1, 1).clone()
+    )
+    X, U = torch.zeros(1, samples, 4, 1), torch.randn(1, samples, 4, 1)
+    with pytest.raises(ValueError, match="out of reach"):
+        pi2_update(gains, X, U, cost_to_go.unsqueeze(0), kl=1.0 if samples < 3 else 1.2)
+
+
 def test_equal_costs_leave_the_weights_uniform_and_the_feed_forward_at_the_samples_mean():
     gains = gaussian(M=2, T=3)
     g = torch.Generator().manual_seed(1)

@@ -99,12 +99,28 @@ def temperatures(cost_to_go: torch.Tensor, kl: float, iterations: int = 80) -> t
     on the best sample) towards 0; where even ``MIN_TEMPERATURE`` keeps it below ``kl``,
     that is the temperature.
 
+    A ``kl`` of ``log N`` or more no temperature meets: every weight would fall on one
+    sample, and the covariance fitted to the weighted spread would collapse. It is refused
+    (``GPSConfig`` refuses it before any work, in the option's own terms).
+
     Examples:
         >>> S = torch.tensor([[0.0], [1.0], [2.0]])  # 3 samples, 1 step
         >>> eta = temperatures(S, kl=0.1)
         >>> bool((_kl_from_uniform(_weights(S, eta)) - 0.1).abs().max() < 1e-6)
         True
+        >>> temperatures(S, kl=1.2)  # log 3 = 1.0986
+        Traceback (most recent call last):
+        ...
+        ValueError: a KL of 1.2 from uniform is out of reach of the weights of 3 samples ...
     """
+    samples = cost_to_go.shape[-2]
+    if not kl >= 0:
+        raise ValueError(f"kl must be non-negative (0: uniform weights), got {kl}")
+    if not kl < math.log(samples):
+        raise ValueError(
+            f"a KL of {kl:.3g} from uniform is out of reach of the weights of {samples} samples "
+            f"(at most log {samples} = {math.log(samples):.3g}): ask for less, or sample more"
+        )
     S = cost_to_go - cost_to_go.amin(-2, keepdim=True)  # the same weights, no overflow
     low = torch.full(S.shape[:-2] + S.shape[-1:], math.log(MIN_TEMPERATURE), dtype=S.dtype)
     high = torch.full_like(low, math.log(MAX_TEMPERATURE))
